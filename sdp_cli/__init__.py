@@ -1,0 +1,3 @@
+"""sdp: Sobolev Diffusion Policy toolkit (trajectory optimization + diffusion policies)."""
+
+__version__ = "0.1.0"

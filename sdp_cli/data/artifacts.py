@@ -1,0 +1,124 @@
+"""Versioned on-disk artifacts: ``.npz`` files with a JSON metadata record.
+
+Every artifact sdp writes is a NumPy ``.npz`` archive (open it with ``np.load`` without
+sdp). Besides its arrays it holds ``__meta__``: a 0-d string array with a JSON object
+that has at least ``kind`` (e.g. ``"dataset"``), ``format_version``, ``created``,
+``provenance`` (package versions, git revision, python, platform) and ``config``.
+The array layout of each kind is documented in ``docs/artifacts.md``.
+
+Writes are atomic (temporary file in the same folder, fsync, ``os.replace``), so a
+killed process never leaves a half-written artifact.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import functools
+import json
+import os
+import platform
+import subprocess
+import tempfile
+import zipfile
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sdp_cli.errors import SdpError
+
+FORMAT_VERSION = 1
+_PACKAGES = ("sdp-cli", "numpy", "casadi", "pin", "example-robot-data", "torch", "diffusers")
+
+
+@functools.cache
+def git_revision() -> str:
+    """``git rev-parse HEAD`` of the source tree (with ``+dirty`` when modified), or ``unknown``."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
+                             timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+        return rev + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+@functools.cache
+def provenance() -> dict[str, Any]:
+    """Package versions, git revision and platform, recorded inside every artifact."""
+    versions = {}
+    for pkg in _PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {"versions": versions, "git_rev": git_revision(), "python": platform.python_version(),
+            "platform": platform.platform()}
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
+    """Call ``writer(fileobj)`` on a temp file next to ``path``, then rename it into place."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise SdpError(f"cannot write {path}: {e.strerror or e}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
+             config: dict[str, Any] | None = None, **extra_meta: Any) -> Path:
+    """Atomically write ``arrays`` plus a metadata record of ``kind`` to ``path``."""
+    meta = {"kind": kind, "format_version": FORMAT_VERSION,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "provenance": provenance(), "config": config or {}, **extra_meta}
+    payload = {k: np.asarray(v) for k, v in arrays.items()}
+    payload["__meta__"] = np.array(json.dumps(meta, default=_json_default))
+    return atomic_write_bytes(path, lambda f: np.savez(f, **payload))
+
+
+def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read an artifact; ``SdpError`` if missing, corrupt, or not of ``kind``."""
+    path = Path(path)
+    if not path.is_file():
+        raise SdpError(f"artifact not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise SdpError(f"corrupt artifact {path}: {e}") from None
+    if "__meta__" not in arrays:
+        raise SdpError(f"corrupt artifact {path}: no __meta__ record (not written by sdp?)")
+    try:
+        meta = json.loads(str(arrays.pop("__meta__")))
+    except json.JSONDecodeError as e:
+        raise SdpError(f"corrupt artifact {path}: bad metadata ({e})") from None
+    if kind is not None and meta.get("kind") != kind:
+        raise SdpError(f"{path} is a {meta.get('kind')!r} artifact, expected {kind!r}")
+    if meta.get("format_version", 0) > FORMAT_VERSION:
+        raise SdpError(f"{path} has format_version {meta['format_version']}, newer than this sdp "
+                       f"({FORMAT_VERSION}); upgrade sdp")
+    return arrays, meta

@@ -1,0 +1,183 @@
+"""The task interface: one optimal control problem family (eq. (1) of the paper).
+
+A task owns
+
+- the robot model (numerical Pinocchio model and its casadi translation);
+- the dimensions: configuration ``nq``, velocity ``nv``, state ``nx = nq + nv``, state
+  tangent ``ndx = 2 nv`` (``nx != ndx`` for free-flyers), control ``nu``; ``dt``, horizon ``T``;
+- the distribution P of task parameters ``xi (n_xi,)`` (:meth:`Task.sample_xi`) and the
+  initial state ``x0(xi)``;
+- running and terminal costs, control bounds and state constraints ``h(x, xi) <= 0``,
+  all as casadi functions (the optimizer transcribes them, simulation evaluates them);
+- the naive initial guess ``Interpolate(x0, x_target)``;
+- the discrete dynamics: semi-implicit Euler ``v+ = v + dt aba(q, v, u)``,
+  ``q+ = integrate(q, dt v+)``, identical in the optimizer (casadi) and in numerical
+  simulation (Pinocchio), so that RNEA inverts a step exactly;
+- the policy conventions (action variable, observation map), used by the learning side.
+
+Gains and state Jacobians live in the tangent space: ``K_t (nu, ndx)``,
+``dx_{t+1}/dx_t (ndx, ndx)``, with perturbations applied through :meth:`Task.integrate`.
+"""
+
+from __future__ import annotations
+
+import functools
+from abc import ABC, abstractmethod
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+
+from sdp_cli.dynamics.casadi_model import CasadiModel
+
+
+class Task(ABC):
+    """Base class of every task. Subclasses set the attributes below in ``__init__``."""
+
+    #: registered name (``sdp collect --task NAME``)
+    name: str
+    model: pin.Model
+    dt: float
+    T: int
+    nu: int
+    n_xi: int
+    #: control bounds (nu,)
+    u_lb: np.ndarray
+    u_ub: np.ndarray
+    #: number of state constraints h(x, xi) <= 0 (applied to x_1..x_T)
+    n_h: int = 0
+    #: action variable of the policy: "u" (torque), "x", "q" or "v"
+    action: str = "u"
+
+    def __init__(self) -> None:
+        self.data = self.model.createData()
+        self.cmodel = CasadiModel(self.model)
+
+    # ------------------------------------------------------------ dimensions
+    @property
+    def nq(self) -> int:
+        return self.model.nq
+
+    @property
+    def nv(self) -> int:
+        return self.model.nv
+
+    @property
+    def nx(self) -> int:
+        return self.nq + self.nv
+
+    @property
+    def ndx(self) -> int:
+        return 2 * self.nv
+
+    def params(self) -> dict:
+        """Everything that defines this task instance (stored in artifacts)."""
+        return {"name": self.name, "dt": self.dt, "T": self.T}
+
+    # --------------------------------------------------- task distribution P
+    @abstractmethod
+    def sample_xi(self, rng: np.random.Generator) -> np.ndarray:
+        """Draw task parameters ``xi ~ P``, shape (n_xi,)."""
+
+    @abstractmethod
+    def initial_state(self, xi: np.ndarray) -> np.ndarray:
+        """``x0 = x_hat(xi)``, shape (nx,)."""
+
+    @abstractmethod
+    def naive_guess(self, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``Interpolate(x0, x_target)``: ``X (T+1, nx)``, ``U (T, nu)``."""
+
+    # ------------------------------------------------------ symbolic problem
+    @abstractmethod
+    def _running_cost(self, x, u, xi):
+        """casadi expression of ``l_t(x, u; xi)``."""
+
+    @abstractmethod
+    def _terminal_cost(self, x, xi):
+        """casadi expression of ``l_T(x; xi)``."""
+
+    def _state_constraints(self, x, xi):
+        """casadi expression ``h(x; xi)`` (n_h,), feasible when ``h <= 0``."""
+        return ca.SX.zeros(0, 1)
+
+    def _control_to_tau(self, u):
+        """Generalized forces from controls (identity for fully actuated arms)."""
+        return u
+
+    def _symbols(self):
+        return ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("xi", self.n_xi)
+
+    @functools.cached_property
+    def f_step(self) -> ca.Function:
+        """``x_{t+1} = f(x_t, u_t)``: semi-implicit Euler, casadi."""
+        x, u, _ = self._symbols()
+        q, v = x[: self.nq], x[self.nq:]
+        a = self.cmodel.aba(q, v, self._control_to_tau(u))
+        v_next = v + self.dt * a
+        q_next = self.cmodel.integrate(q, self.dt * v_next)
+        return ca.Function("step", [x, u], [ca.vertcat(q_next, v_next)], ["x", "u"], ["x_next"])
+
+    @functools.cached_property
+    def f_running_cost(self) -> ca.Function:
+        x, u, xi = self._symbols()
+        return ca.Function("l", [x, u, xi], [self._running_cost(x, u, xi)], ["x", "u", "xi"], ["l"])
+
+    @functools.cached_property
+    def f_terminal_cost(self) -> ca.Function:
+        x, _, xi = self._symbols()
+        return ca.Function("lT", [x, xi], [self._terminal_cost(x, xi)], ["x", "xi"], ["lT"])
+
+    @functools.cached_property
+    def f_state_constraints(self) -> ca.Function:
+        x, _, xi = self._symbols()
+        return ca.Function("h", [x, xi], [self._state_constraints(x, xi)], ["x", "xi"], ["h"])
+
+    @functools.cached_property
+    def f_integrate(self) -> ca.Function:
+        """``x (+) dx`` on the state manifold, casadi."""
+        x, dx = ca.SX.sym("x", self.nx), ca.SX.sym("dx", self.ndx)
+        q_next = self.cmodel.integrate(x[: self.nq], dx[: self.nv])
+        return ca.Function("integrate", [x, dx], [ca.vertcat(q_next, x[self.nq:] + dx[self.nv:])])
+
+    # ------------------------------------------------------------ numerics
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One semi-implicit Euler step with Pinocchio's ``aba``: (nx,), (nu,) -> (nx,)."""
+        q, v = x[: self.nq], x[self.nq:]
+        tau = np.asarray(self.control_to_tau(u), dtype=float)
+        v_next = v + self.dt * pin.aba(self.model, self.data, q, v, tau)
+        return np.concatenate([pin.integrate(self.model, q, self.dt * v_next), v_next])
+
+    def control_to_tau(self, u: np.ndarray) -> np.ndarray:
+        """Numerical counterpart of :meth:`_control_to_tau`."""
+        return np.asarray(u, dtype=float)
+
+    def simulate(self, x0: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """Roll the dynamics out open-loop: ``X (len(U)+1, nx)``."""
+        X = np.empty((len(U) + 1, self.nx))
+        X[0] = x0
+        for t, u in enumerate(U):
+            X[t + 1] = self.step(X[t], u)
+        return X
+
+    def integrate(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """``x (+) dx`` with Pinocchio: (nx,), (ndx,) -> (nx,)."""
+        q = pin.integrate(self.model, x[: self.nq], dx[: self.nv])
+        return np.concatenate([q, x[self.nq:] + dx[self.nv:]])
+
+    def difference(self, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        """``x1 (-) x0`` with Pinocchio: (nx,), (nx,) -> (ndx,)."""
+        dq = pin.difference(self.model, x0[: self.nq], x1[: self.nq])
+        return np.concatenate([dq, x1[self.nq:] - x0[self.nq:]])
+
+    def cost(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
+        """The true objective ``J(X, U; xi)`` of eq. (1)."""
+        run = self.f_running_cost.map(len(U))(X[:-1].T, U.T, np.repeat(xi[:, None], len(U), 1))
+        return float(run.full().sum() + float(self.f_terminal_cost(X[-1], xi)))
+
+    def constraint_violation(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
+        """Max violation of control bounds and state constraints (0 when feasible)."""
+        viol = max(0.0, float(np.max(U - self.u_ub, initial=0.0)), float(np.max(self.u_lb - U, initial=0.0)))
+        if self.n_h:
+            h = self.f_state_constraints.map(len(X) - 1)(X[1:].T, np.repeat(xi[:, None], len(X) - 1, 1)).full()
+            viol = max(viol, float(np.max(h, initial=0.0)))
+        return viol
