@@ -17,6 +17,11 @@ app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_
                   pretty_exceptions_enable=False, add_completion=False)
 
 
+@app.callback()
+def _root() -> None:
+    """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
+
+
 def clean_errors(fn: Callable) -> Callable:
     """Turn SdpError (and Ctrl-C) into a one-line message and exit code 1."""
 
