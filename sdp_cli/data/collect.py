@@ -1,0 +1,252 @@
+"""``sdp collect``: solve OCPs from the naive guess and keep the converged ones.
+
+Determinism: ``xi_i`` is a function of ``(seed, i)`` only (:func:`sample_xi`), every
+index is solved independently, and the kept set is the first ``n_traj`` converged
+indices in index order, whatever the number of workers or the completion order.
+
+Resumability: every finished solve (converged or not) is written atomically to
+``<out>.partial/<i>.npz`` by the main process before it is counted, next to a
+``manifest.json`` holding the run's configuration. Re-running the same command after a
+crash (even ``kill -9``) reuses those files and solves only what is missing. The final
+artifact is written atomically, then the partial folder is removed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import multiprocessing as mp
+import numpy as np
+
+from sdp_cli.data.artifacts import load_npz, save_npz
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks import Task, get_task
+
+RESULT_KEYS = ("X", "U", "K", "A", "B", "Phi", "cost", "iterations", "solve_time", "converged",
+               "max_violation")
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """Everything that determines a collection's content."""
+
+    task: str
+    n_traj: int
+    seed: int = 0
+    max_iter: int = 1000
+    max_attempts: int | None = None  # default: 20 * n_traj
+    task_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.n_traj <= 0:
+            raise SdpError(f"n_traj must be > 0, got {self.n_traj}")
+        if self.max_iter <= 0:
+            raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
+        if self.max_attempts is not None and self.max_attempts < self.n_traj:
+            raise SdpError(f"max_attempts ({self.max_attempts}) must be >= n_traj ({self.n_traj})")
+
+    @property
+    def attempts_cap(self) -> int:
+        return self.max_attempts if self.max_attempts is not None else 20 * self.n_traj
+
+    def identity(self) -> dict:
+        """The part of the config that partial results must agree on (not the caps)."""
+        return {"task": self.task, "seed": self.seed, "max_iter": self.max_iter,
+                "task_options": dict(sorted(self.task_options.items()))}
+
+
+def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
+    """``xi_i``: a pure function of ``(seed, index)``."""
+    return task.sample_xi(np.random.default_rng([int(seed), int(index)]))
+
+
+def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int) -> dict:
+    """Solve instance ``index`` from the naive guess; a dict of arrays (picklable)."""
+    from sdp_cli.trajopt import get_solver
+
+    task = get_task(task_name, **task_options)
+    solver = get_solver(task, max_iter=max_iter)
+    xi = sample_xi(task, seed, index)
+    X0, U0 = task.naive_guess(xi)
+    res = solver.solve(xi, X0, U0)
+    out = {k: np.asarray(getattr(res, k)) for k in RESULT_KEYS}
+    out["xi"] = xi
+    out["index"] = np.asarray(index)
+    out["status"] = np.asarray(str(res.status))
+    return out
+
+
+# ----------------------------------------------------------------- partial store
+class PartialStore:
+    """Per-index results of an unfinished collection in ``<out>.partial/``."""
+
+    def __init__(self, out: Path, config: CollectConfig):
+        self.dir = out.with_name(out.name + ".partial")
+        self.config = config
+        manifest = self.dir / "manifest.json"
+        if self.dir.exists():
+            try:
+                old = json.loads(manifest.read_text())
+            except (OSError, json.JSONDecodeError):
+                raise SdpError(f"corrupt partial results in {self.dir} (bad manifest.json); "
+                               "delete the folder to start over") from None
+            if old != config.identity():
+                raise SdpError(f"partial results in {self.dir} come from a different configuration "
+                               f"({old}); delete the folder or choose another --out")
+        else:
+            try:
+                self.dir.mkdir(parents=True)
+                manifest.write_text(json.dumps(config.identity()))
+            except OSError as e:
+                raise SdpError(f"cannot write to {self.dir}: {e.strerror or e}") from None
+
+    def path(self, index: int) -> Path:
+        return self.dir / f"{index:06d}.npz"
+
+    def save(self, result: dict) -> None:
+        save_npz(self.path(int(result["index"])), result, kind="solve", config=self.config.identity())
+
+    def load_all(self) -> dict[int, dict]:
+        done = {}
+        for p in sorted(self.dir.glob("[0-9]*.npz")):
+            arrays, meta = load_npz(p, kind="solve")
+            if meta.get("config") != self.config.identity() or "index" not in arrays:
+                raise SdpError(f"corrupt partial file {p} (foreign configuration); delete it")
+            missing = [k for k in RESULT_KEYS if k not in arrays]
+            if missing:
+                raise SdpError(f"corrupt partial file {p} (missing {', '.join(missing)}); delete it")
+            done[int(arrays["index"])] = arrays
+        return done
+
+    def remove(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+# --------------------------------------------------------------- index schedule
+def kept_indices(done: dict[int, dict], n_traj: int) -> list[int] | None:
+    """First ``n_traj`` converged indices if every smaller index is finished, else None."""
+    kept = []
+    i = 0
+    while i in done:
+        if bool(done[i]["converged"]):
+            kept.append(i)
+            if len(kept) == n_traj:
+                return kept
+        i += 1
+    return None
+
+
+def _next_indices(done: dict, inflight: set, n_traj: int, cap: int) -> Iterator[int]:
+    """Indices to submit next, lowest first, never more than needed optimistically."""
+    top = max(done, default=-1)
+    for i in range(min(top, cap)):  # holes left by a crash always come first
+        if i not in done and i not in inflight:
+            yield i
+    n_conv = sum(bool(r["converged"]) for r in done.values())
+    need = n_traj - n_conv - len(inflight)
+    i = top + 1
+    while need > 0 and i < cap:
+        if i not in inflight:
+            yield i
+            need -= 1
+        i += 1
+
+
+def _worker_init() -> None:
+    # one BLAS/OpenMP thread per worker: the parallelism is across processes
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+@dataclass
+class CollectStats:
+    attempts: int = 0
+    kept: int = 0
+    rejected: int = 0
+    mean_solve_time: float = 0.0
+    convergence_rate: float = 0.0
+    wall_time: float = 0.0
+
+
+def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None = None,
+            progress: Callable[[CollectStats], None] | None = None) -> tuple[Path, CollectStats]:
+    """Run a collection (resuming any partial results) and write the dataset artifact."""
+    out = Path(out)
+    if out.exists() and out.is_dir():
+        raise SdpError(f"--out {out} is a directory; give a file path such as {out}/dataset.npz")
+    task = get_task(config.task, **config.task_options)  # validates the name early
+    workers = max(1, workers or os.cpu_count() or 1)
+    store = PartialStore(out, config)
+    done = store.load_all()
+    t_start = time.perf_counter()
+    stats = CollectStats()
+
+    def update(result: dict | None = None) -> None:
+        if result is not None:
+            store.save(result)
+            done[int(result["index"])] = result
+        conv = [r for r in done.values() if bool(r["converged"])]
+        stats.attempts = len(done)
+        stats.kept = min(len(conv), config.n_traj)
+        stats.rejected = len(done) - len(conv)
+        stats.mean_solve_time = float(np.mean([float(r["solve_time"]) for r in done.values()])) if done else 0.0
+        stats.convergence_rate = len(conv) / len(done) if done else 0.0
+        if progress:
+            progress(stats)
+
+    update()
+    args = (config.task, config.task_options, config.seed)
+    cap = config.attempts_cap
+    if kept_indices(done, config.n_traj) is None:
+        if workers == 1:
+            while kept_indices(done, config.n_traj) is None:
+                todo = next(_next_indices(done, set(), config.n_traj, cap), None)
+                if todo is None:
+                    break
+                update(solve_index(*args, todo, config.max_iter))
+        else:
+            from sdp_cli.trajopt import get_solver
+
+            get_solver(task, max_iter=config.max_iter)  # build once, inherited by forked workers
+            ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init) as pool:
+                inflight: dict[Future, int] = {}
+                try:
+                    while kept_indices(done, config.n_traj) is None:
+                        for i in _next_indices(done, set(inflight.values()), config.n_traj, cap):
+                            if len(inflight) >= 2 * workers:
+                                break
+                            inflight[pool.submit(solve_index, *args, i, config.max_iter)] = i
+                        if not inflight:
+                            break
+                        finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                        for fut in sorted(finished, key=inflight.get):
+                            inflight.pop(fut)
+                            update(fut.result())
+                finally:
+                    for fut in inflight:
+                        fut.cancel()
+    kept = kept_indices(done, config.n_traj)
+    stats.wall_time = time.perf_counter() - t_start
+    if kept is None:
+        n_conv = sum(bool(r["converged"]) for r in done.values())
+        raise SdpError(f"only {n_conv} of {config.n_traj} solves converged after {len(done)} attempts "
+                       f"(cap {cap}); raise --max-attempts or --max-iter (finished solves are kept "
+                       f"in {store.dir})")
+    arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index")}
+    arrays["converged"] = arrays["converged"].astype(bool)
+    dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
+            "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
+    path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": workers},
+                    task=config.task, task_params=task.params(), dims=dims,
+                    stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
+                           "convergence_rate": stats.convergence_rate,
+                           "mean_solve_time": stats.mean_solve_time})
+    store.remove()
+    return path, stats
