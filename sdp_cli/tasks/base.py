@@ -169,6 +169,59 @@ class Task(ABC):
         dq = pin.difference(self.model, x0[: self.nq], x1[: self.nq])
         return np.concatenate([dq, x1[self.nq:] - x0[self.nq:]])
 
+    # ------------------------------------------------- policy conventions
+    # Batched over leading axes: x (..., nx). Jacobians are w.r.t. the state tangent
+    # (perturbation x (+) dx), so chaining them with K_t and Phi_t is consistent.
+    # Defaults: observation = x (identity), action = u (torque) or the part of x named by
+    # ``action``. UR5 overrides the observation with (cos q, sin q, v); the quadrotor maps
+    # q to dq = q (-) q_ref.
+
+    @property
+    def n_obs(self) -> int:
+        """Size of the observation map ``obs(x)``."""
+        return self.nx
+
+    @property
+    def n_action(self) -> int:
+        """Size of one action ``a_t`` of the policy."""
+        return {"u": self.nu, "x": self.ndx, "q": self.nv, "v": self.nv}[self.action]
+
+    def _require_euclidean(self, what: str) -> None:
+        if self.nx != self.ndx:
+            raise NotImplementedError(f"{type(self).__name__} must override {what} (nx != ndx)")
+
+    def observation(self, x: np.ndarray) -> np.ndarray:
+        """Observation map ``obs(x)``: (..., nx) -> (..., n_obs). Default: x."""
+        self._require_euclidean("observation")
+        return np.asarray(x, dtype=float).copy()
+
+    def observation_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``d obs / d dx``: (..., nx) -> (..., n_obs, ndx). Default: identity."""
+        self._require_euclidean("observation_jacobian")
+        x = np.asarray(x, dtype=float)
+        return np.broadcast_to(np.eye(self.ndx), x.shape[:-1] + (self.ndx, self.ndx)).copy()
+
+    def state_action(self, x: np.ndarray) -> np.ndarray:
+        """Action of a state-controlled policy ``a = g(x)``: (..., nx) -> (..., n_action).
+
+        ``action`` "x": x, "q": q, "v": v. Undefined for torque control (``action == "u"``).
+        """
+        x = np.asarray(x, dtype=float)
+        if self.action == "u":
+            raise ValueError("state_action is undefined for torque control (action 'u')")
+        self._require_euclidean("state_action")
+        return {"x": x, "q": x[..., : self.nq], "v": x[..., self.nq:]}[self.action].copy()
+
+    def state_action_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``G = d g / d dx``: (..., nx) -> (..., n_action, ndx)."""
+        x = np.asarray(x, dtype=float)
+        if self.action == "u":
+            raise ValueError("state_action_jacobian is undefined for torque control (action 'u')")
+        self._require_euclidean("state_action_jacobian")
+        eye = np.eye(self.ndx)
+        G = {"x": eye, "q": eye[: self.nv], "v": eye[self.nv:]}[self.action]
+        return np.broadcast_to(G, x.shape[:-1] + G.shape).copy()
+
     def cost(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
         """The true objective ``J(X, U; xi)`` of eq. (1)."""
         run = self.f_running_cost.map(len(U))(X[:-1].T, U.T, np.repeat(xi[:, None], len(U), 1))
