@@ -46,6 +46,25 @@ def _register_builtin() -> None:
              "single pendulum swing-up, torque control, |u| <= 25")
     register("double_pendulum", lambda **kw: PendulumTask(n_links=2, **kw),
              "double pendulum swing-up, torque control, |u| <= 25 per joint")
+    _register_ur5_quadrotor()
+
+
+def _register_ur5_quadrotor() -> None:
+    from sdp_cli.tasks.quadrotor import COLUMNS, QuadrotorTask
+    from sdp_cli.tasks.ur5 import VARIANTS, Ur5Task
+
+    init = {False: "q0 near the home pose", True: "q0 anywhere in [-pi, pi]^6"}
+    tgt = {False: "fixed ee target", True: "random reachable ee target"}
+    for name, (r_init, r_tgt) in VARIANTS.items():
+        register(name, lambda r_init=r_init, r_tgt=r_tgt, **kw: Ur5Task(r_init=r_init, r_tgt=r_tgt, **kw),
+                 f"UR5 reach (r_init={int(r_init)}, r_tgt={int(r_tgt)}): {init[r_init]}, {tgt[r_tgt]}; "
+                 "torque limits")
+    for n in COLUMNS:
+        register(f"quadrotor-{n}", lambda n=n, **kw: QuadrotorTask(n_obstacles=n, **kw),
+                 f"hector quadrotor to a goal at the same height, {n} column obstacles, floor/ceiling, "
+                 "thrust bounds")
+    register("quadrotor", lambda **kw: QuadrotorTask(n_obstacles=0, name="quadrotor", **kw),
+             "alias of quadrotor-0 (no obstacles)")
 
 
 _register_builtin()

@@ -1,0 +1,283 @@
+"""Quadrotor tasks: ``quadrotor-0``, ``quadrotor-1``, ``quadrotor-3``, ``quadrotor-9`` (number of
+column obstacles; ``quadrotor`` is an alias of ``quadrotor-0``).
+
+Model: example-robot-data's ``hector`` (free-flyer base, m = 1.477 kg, no CoM offset),
+``q = (x, y, z, qx, qy, qz, qw)`` (nq = 7), ``v`` = body twist (linear, angular) in the body
+frame (nv = 6); state tangent ndx = 12 via Pinocchio's SE(3) ``integrate``/``difference``.
+
+Controls u = the 4 rotor thrusts [N], bounded ``0 <= u_i <= U_MAX = 6`` (hover: m g / 4 = 3.62 N,
+thrust-to-weight 1.66). Rotor geometry (constants of the hector model used by crocoddyl's and
+aligator's quadrotor examples): "+" layout, rotors 1..4 at ``ARM = 0.1525`` m along
++x, +y, -x, -y, drag-to-thrust ratio ``C_TAU = cm / cf = 1e-6 / 6.6e-5`` m, rotors 1, 3 spin
+so that their yaw torque is ``-C_TAU u``, rotors 2, 4 ``+C_TAU u``. The body wrench (force,
+torque) in the body frame (Pinocchio's generalized force of a free-flyer) is ``tau = ALLOC @ u``:
+
+    f = (0, 0, u1 + u2 + u3 + u4)
+    m = (ARM (u2 - u4), ARM (u3 - u1), C_TAU (-u1 + u2 - u3 + u4))
+
+Arena (world frame, z up): start and goal at the same height ``z ~ U[0.8, 2.0]``; the start
+in ``x ~ U[-3, -1.5], y ~ U[-2, 2]``, the goal in ``x ~ U[1.5, 3], y ~ U[-2, 2]``, swapped
+with probability 1/2; both rejected unless at least ``CLEARANCE = 0.1`` m outside every
+inflated column. Start: identity orientation, zero velocity.
+Constraints h(x) <= 0 on x_1..x_T (real OCP constraints): floor ``z >= Z_FLOOR = 0.3``,
+ceiling ``z <= Z_CEIL = 2.5``, and for each vertical column (cx, cy, r) (infinite cylinder),
+``(R^2 - d^2) / (2 R) <= 0`` with d the horizontal distance of the base to the column axis
+and ``R = r + R_QUAD``, ``R_QUAD = 0.4`` m (the bounding radius of hector's collision mesh).
+Layouts (cx, cy, r) in ``COLUMNS``: 1 = a column (0, 0, 0.5); 3 = a row x = 0 at
+y = -1.8, 0, 1.8 (r = 0.3); 9 = a 3x3 grid x, y in {-1.2, 0, 1.2} x {-1.6, 0, 1.6} (r = 0.2),
+so that the straight line from start to goal usually crosses a column. The layout is fixed
+per task name (not part of xi).
+
+Task parameters ``xi = (x0 (13), p_goal (3))``, ``n_xi = 16``. T = 150 steps of dt = 0.02 s.
+Costs (summed per step, time-invariant; e = p - p_goal, rot = (qx, qy, qz), i.e.
+||rot||^2 = sin^2(angle / 2), invariant to the quaternion sign):
+    l_t = 1 ||e||^2 + 0.1 ||v||^2 + 1 ||rot||^2 + 0.01 ||u - u_hover||^2
+    l_T = 100 ||e||^2 + 10 ||v||^2 + 10 ||rot||^2
+Naive guess: positions on the straight line start -> goal, identity orientation, v the
+constant velocity of that line (v_0 = 0), hover thrusts.
+
+Policy conventions (Sec. IV-B): state control; ``q`` is mapped to the tangent space,
+``dq = q (-) Q_REF`` (``pin.difference``, SE(3) log) with Q_REF the identity placement at the
+arena's origin; ``observation(x) = state_action(x) = (dq, v)`` (12,), Jacobian
+``(12, 12) = blkdiag(Jlog6, I)`` w.r.t. the tangent perturbation ``x (+) dx``.
+:meth:`QuadrotorTask.inverse_dynamics` turns a predicted next state into thrusts: the twist
+acceleration's wrench ``rnea(q, v, (v+ - v) / dt)`` projected on the thrusts by box-bounded
+least squares through ``ALLOC`` (exact for reachable next states).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks.base import Task
+from sdp_cli.tasks.robots import load_model
+
+ARM = 0.1525  # m, rotor distance to the CoM
+C_TAU = 1e-6 / 6.6e-5  # m, yaw drag torque per unit thrust (cm / cf)
+U_MIN, U_MAX = 0.0, 6.0  # N per rotor
+R_QUAD = 0.4  # m, bounding radius of the airframe
+Z_FLOOR, Z_CEIL = 0.3, 2.5  # m, bounds on the base height
+Z_RANGE = (0.8, 2.0)  # m, start/goal height
+START_X, GOAL_X, Y_RANGE = (-3.0, -1.5), (1.5, 3.0), (-2.0, 2.0)
+CLEARANCE = 0.1  # m, sampled positions keep this distance from inflated columns
+W_P, W_V, W_ROT, W_U = 1.0, 0.1, 1.0, 0.01
+W_P_T, W_V_T, W_ROT_T = 100.0, 10.0, 10.0
+
+#: thrusts (4,) -> body wrench (force, torque) (6,)
+ALLOC = np.array([
+    [0.0, 0.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 0.0],
+    [1.0, 1.0, 1.0, 1.0],
+    [0.0, ARM, 0.0, -ARM],
+    [-ARM, 0.0, ARM, 0.0],
+    [-C_TAU, C_TAU, -C_TAU, C_TAU],
+])
+
+#: number of columns -> (n, 3) array of (cx, cy, radius)
+COLUMNS = {
+    0: np.zeros((0, 3)),
+    1: np.array([[0.0, 0.0, 0.5]]),
+    3: np.array([[0.0, y, 0.3] for y in (-1.8, 0.0, 1.8)]),
+    9: np.array([[x, y, 0.2] for x in (-1.2, 0.0, 1.2) for y in (-1.6, 0.0, 1.6)]),
+}
+
+
+def bounded_least_squares(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """``argmin ||A u - b||^2`` s.t. ``lb <= u <= ub``, exact, for a few unknowns.
+
+    ``A (m, n)`` with full column rank, ``b (..., m)`` -> ``u (..., n)``. Enumerates the 3^n
+    active sets (each variable free, at its lower or at its upper bound): the optimum of this
+    strictly convex QP is the feasible candidate of least residual.
+    """
+    b = np.asarray(b, dtype=float)
+    n = A.shape[1]
+    flat = b.reshape(-1, A.shape[0])
+    best_u = np.zeros((len(flat), n))
+    best_r = np.full(len(flat), np.inf)
+    for pattern in itertools.product((0, 1, 2), repeat=n):  # 0 free, 1 lower, 2 upper
+        pattern = np.array(pattern)
+        free = pattern == 0
+        u = np.where(pattern == 1, lb, ub)[None].repeat(len(flat), 0).astype(float)
+        if free.any():
+            rhs = flat - u[:, ~free] @ A[:, ~free].T
+            u[:, free] = rhs @ np.linalg.pinv(A[:, free]).T
+        ok = np.all((u >= lb - 1e-12) & (u <= ub + 1e-12), axis=1)
+        r = np.sum((u @ A.T - flat) ** 2, axis=1)
+        better = ok & (r < best_r - 1e-15)
+        best_u[better], best_r[better] = u[better], r[better]
+    return np.clip(best_u, lb, ub).reshape(b.shape[:-1] + (n,))
+
+
+class QuadrotorTask(Task):
+    """Hector quadrotor flying to a goal at the same height among vertical columns."""
+
+    action = "x"
+
+    def __init__(self, n_obstacles: int = 0, T: int = 150, dt: float = 0.02, name: str | None = None):
+        if n_obstacles not in COLUMNS:
+            raise SdpError(f"obstacles must be one of {sorted(COLUMNS)}, got {n_obstacles}")
+        if int(T) < 2:
+            raise SdpError(f"horizon T must be >= 2, got {T}")
+        if not dt > 0:
+            raise SdpError(f"dt must be > 0, got {dt}")
+        self.n_obstacles = int(n_obstacles)
+        self.name = name or f"quadrotor-{self.n_obstacles}"
+        self.T, self.dt = int(T), float(dt)
+        self.model = load_model("hector")
+        super().__init__()
+        self.nu = 4
+        self.n_xi = self.nx + 3
+        self.u_lb, self.u_ub = np.full(4, U_MIN), np.full(4, U_MAX)
+        self.columns = COLUMNS[self.n_obstacles].copy()
+        self.n_h = 2 + len(self.columns)
+        self.mass = float(sum(I.mass for I in self.model.inertias))
+        self.u_hover = np.full(4, self.mass * -self.model.gravity.linear[2] / 4)
+        self.q_ref = pin.neutral(self.model)
+
+    def params(self) -> dict:
+        return {**super().params(), "n_obstacles": self.n_obstacles, "columns": self.columns.tolist(),
+                "arm": ARM, "c_tau": C_TAU, "u_bounds": [U_MIN, U_MAX], "r_quad": R_QUAD,
+                "z_floor": Z_FLOOR, "z_ceil": Z_CEIL,
+                "weights": {"p": W_P, "v": W_V, "rot": W_ROT, "u": W_U, "p_T": W_P_T, "v_T": W_V_T,
+                            "rot_T": W_ROT_T}}
+
+    # --------------------------------------------------------------- distribution
+    def clearance(self, p: np.ndarray) -> np.ndarray:
+        """Horizontal distance of positions ``(..., 3)`` to the inflated columns' surface (..., n_col)."""
+        p = np.asarray(p, dtype=float)
+        d = np.hypot(p[..., None, 0] - self.columns[:, 0], p[..., None, 1] - self.columns[:, 1])
+        return d - (self.columns[:, 2] + R_QUAD)
+
+    def _sample_position(self, rng: np.random.Generator, x_range, z: float) -> np.ndarray:
+        for _ in range(10000):
+            p = np.array([rng.uniform(*x_range), rng.uniform(*Y_RANGE), z])
+            if np.all(self.clearance(p) >= CLEARANCE):
+                return p
+        raise SdpError("could not sample a position outside the columns")  # pragma: no cover
+
+    def sample_xi(self, rng: np.random.Generator) -> np.ndarray:
+        z = rng.uniform(*Z_RANGE)
+        start = self._sample_position(rng, START_X, z)
+        goal = self._sample_position(rng, GOAL_X, z)
+        if rng.uniform() < 0.5:
+            start, goal = goal, start
+        x0 = np.concatenate([start, [0.0, 0.0, 0.0, 1.0], np.zeros(6)])
+        return np.concatenate([x0, goal])
+
+    def initial_state(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(xi, dtype=float)[: self.nx].copy()
+
+    def with_initial_state(self, xi: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """``xi`` with its initial state replaced by ``x0`` (same goal)."""
+        xi = np.asarray(xi, dtype=float).copy()
+        xi[: self.nx] = x0
+        return xi
+
+    def target(self, xi: np.ndarray) -> np.ndarray:
+        """Goal position (3,)."""
+        return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
+
+    def naive_guess(self, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x0 = self.initial_state(xi)
+        p0, goal = x0[:3], self.target(xi)
+        s = np.linspace(0.0, 1.0, self.T + 1)[:, None]
+        P = p0 + s * (goal - p0)
+        Quat = np.repeat(np.array([[0.0, 0.0, 0.0, 1.0]]), self.T + 1, 0)
+        V = np.zeros((self.T + 1, 6))
+        V[1:, :3] = (goal - p0) / (self.T * self.dt)
+        V[0] = x0[self.nq:]
+        return np.hstack([P, Quat, V]), np.repeat(self.u_hover[None], self.T, 0)
+
+    # ------------------------------------------------------------ symbolic problem
+    def _control_to_tau(self, u):
+        return ca.mtimes(ca.DM(ALLOC), u)
+
+    def control_to_tau(self, u: np.ndarray) -> np.ndarray:
+        return ALLOC @ np.asarray(u, dtype=float)
+
+    def _running_cost(self, x, u, xi):
+        e = x[0:3] - xi[self.nx:self.nx + 3]
+        return (W_P * ca.sumsqr(e) + W_V * ca.sumsqr(x[self.nq:]) + W_ROT * ca.sumsqr(x[3:6])
+                + W_U * ca.sumsqr(u - ca.DM(self.u_hover)))
+
+    def _terminal_cost(self, x, xi):
+        e = x[0:3] - xi[self.nx:self.nx + 3]
+        return W_P_T * ca.sumsqr(e) + W_V_T * ca.sumsqr(x[self.nq:]) + W_ROT_T * ca.sumsqr(x[3:6])
+
+    def _state_constraints(self, x, xi):
+        z = x[2]
+        h = [Z_FLOOR - z, z - Z_CEIL]
+        for cx, cy, r in self.columns:
+            R = r + R_QUAD
+            h.append((R * R - (x[0] - cx) ** 2 - (x[1] - cy) ** 2) / (2 * R))
+        return ca.vertcat(*h)
+
+    # ------------------------------------------------------------ policy maps
+    def tangent_position(self, x: np.ndarray) -> np.ndarray:
+        """``dq = q (-) Q_REF`` (SE(3) log): (..., 13) -> (..., 6)."""
+        x = np.asarray(x, dtype=float)
+        flat = x.reshape(-1, self.nx)
+        out = np.array([pin.difference(self.model, self.q_ref, xx[: self.nq]) for xx in flat])
+        return out.reshape(x.shape[:-1] + (self.nv,))
+
+    def tangent_position_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``d dq / d dq_tangent`` (Jlog6 of ``Q_REF^-1 q``): (..., 13) -> (..., 6, 6)."""
+        x = np.asarray(x, dtype=float)
+        flat = x.reshape(-1, self.nx)
+        out = np.array([pin.dDifference(self.model, self.q_ref, xx[: self.nq], pin.ARG1) for xx in flat])
+        return out.reshape(x.shape[:-1] + (self.nv, self.nv))
+
+    def state_from_tangent(self, a: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`state_action`: ``(dq, v) -> (Q_REF (+) dq, v)``: (..., 12) -> (..., 13)."""
+        a = np.asarray(a, dtype=float)
+        flat = a.reshape(-1, self.ndx)
+        out = np.array([np.concatenate([pin.integrate(self.model, self.q_ref, aa[: self.nv]), aa[self.nv:]])
+                        for aa in flat])
+        return out.reshape(a.shape[:-1] + (self.nx,))
+
+    @property
+    def n_obs(self) -> int:
+        return self.ndx
+
+    @property
+    def n_action(self) -> int:
+        return self.ndx
+
+    def observation(self, x: np.ndarray) -> np.ndarray:
+        """``(dq, v)``: (..., 13) -> (..., 12)."""
+        x = np.asarray(x, dtype=float)
+        return np.concatenate([self.tangent_position(x), x[..., self.nq:]], axis=-1)
+
+    def observation_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``blkdiag(Jlog6, I)``: (..., 13) -> (..., 12, 12)."""
+        x = np.asarray(x, dtype=float)
+        J = np.zeros(x.shape[:-1] + (self.ndx, self.ndx))
+        J[..., : self.nv, : self.nv] = self.tangent_position_jacobian(x)
+        J[..., self.nv:, self.nv:] = np.eye(self.nv)
+        return J
+
+    def state_action(self, x: np.ndarray) -> np.ndarray:
+        """Action ``(dq, v)`` (same as the observation): (..., 13) -> (..., 12)."""
+        return self.observation(x)
+
+    def state_action_jacobian(self, x: np.ndarray) -> np.ndarray:
+        return self.observation_jacobian(x)
+
+    def inverse_dynamics(self, x: np.ndarray, x_next: np.ndarray) -> np.ndarray:
+        """Thrusts taking ``x`` to (the velocity of) ``x_next`` in one step: (..., 13) x2 -> (..., 4).
+
+        Wrench ``rnea(q, v, (v_next - v) / dt)``, then box-bounded least squares through ALLOC;
+        exact inverse of :meth:`step` when the next state is reachable.
+        """
+        x, x_next = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(x_next, dtype=float))
+        flat, flat_next = x.reshape(-1, self.nx), x_next.reshape(-1, self.nx)
+        W = np.empty((len(flat), self.nv))
+        for i, (xa, xb) in enumerate(zip(flat, flat_next)):
+            q, v = xa[: self.nq], xa[self.nq:]
+            W[i] = pin.rnea(self.model, self.data, q, v, (xb[self.nq:] - v) / self.dt)
+        return bounded_least_squares(ALLOC, W, self.u_lb, self.u_ub).reshape(x.shape[:-1] + (self.nu,))

@@ -1,0 +1,202 @@
+"""UR5 reach tasks: ``ur5-fixed``, ``ur5-rinit``, ``ur5-rtgt``, ``ur5-rinit-rtgt``.
+
+Model: example-robot-data's ``ur5`` (6 revolute joints), end effector frame ``tool0``.
+Controls are the joint torques, bounded by the model's effort limits
+``|u| <= (150, 150, 150, 28, 28, 28)`` N m; these bounds are the only constraints (no
+joint-limit or collision constraints, as in the paper).
+
+The four variants come from two booleans (Sec. IV-B of the paper):
+
+- ``r_init`` (names with ``rinit``): q0 uniform anywhere in ``[-pi, pi]^6``; otherwise
+  q0 = Q_HOME + uniform ``[-0.3, 0.3]^6`` around the "home" pose
+  ``Q_HOME = (0, -pi/2, pi/2, -pi/2, -pi/2, 0)`` (tool pointing down, ee at (0.49, 0.11, 0.43)).
+  v0 = 0 always.
+- ``r_tgt`` (names with ``rtgt``): the target is the ``tool0`` position of a random
+  configuration (joints uniform in ``[-pi, pi]``), kept when it is at least 0.1 m above the
+  base plane and at least 0.2 m from the base's vertical axis (so reachable by
+  construction); otherwise the fixed target ``P_FIXED = (0.4, 0.3, 0.4)`` m.
+
+Task parameters ``xi = (q0 (6), v0 (6), p_target (3))``, ``n_xi = 15`` for every variant.
+Default horizon T = 200 steps of dt = 0.01 s (3 chunks of T_h = 64).
+
+Costs (summed per step, not multiplied by dt, time-invariant; e = tool0(q) - p_target):
+    l_t = 10 ||e||^2 + 0.01 ||v||^2 + 1e-4 ||u||^2
+    l_T = 1000 ||e||^2 + 10 ||v||^2
+Naive guess ``Interpolate(x0, x_target)``: x_target = (q_ik, 0) with q_ik from damped
+least-squares position IK started at q0; q linearly interpolated, v its constant velocity
+(v_0 = v0), u from RNEA along the interpolation, clipped to the torque limits.
+
+Policy conventions (Sec. IV-B): state control (``action = "x"``: the action is x = (q, v),
+the base class's identity :meth:`~Task.state_action`); the policy sees q as (cos q, sin q):
+``observation(x) = (cos q, sin q, v)`` (18,) with its Jacobian ``(18, 12)`` w.r.t. the
+tangent (here plain) state. A predicted next state is turned into torques by RNEA
+(:meth:`Ur5Task.inverse_dynamics`), the exact inverse of the semi-implicit Euler step.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks.base import Task
+from sdp_cli.tasks.robots import load_model
+
+EE_FRAME = "tool0"
+Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
+P_FIXED = np.array([0.4, 0.3, 0.4])
+INIT_SPREAD = 0.3  # rad, half-width of the small initial region (r_init = 0)
+TGT_MIN_Z, TGT_MIN_R = 0.1, 0.2  # m, random-target acceptance region
+W_EE, W_V, W_U, W_EE_T, W_V_T = 10.0, 0.01, 1e-4, 1000.0, 10.0
+
+#: task name -> (r_init, r_tgt)
+VARIANTS = {
+    "ur5-fixed": (False, False),
+    "ur5-rinit": (True, False),
+    "ur5-rtgt": (False, True),
+    "ur5-rinit-rtgt": (True, True),
+}
+
+
+class Ur5Task(Task):
+    """UR5 reaching a 3D end-effector target under torque limits."""
+
+    action = "x"
+
+    def __init__(self, r_init: bool = False, r_tgt: bool = False, T: int = 200, dt: float = 0.01):
+        if int(T) < 2:
+            raise SdpError(f"horizon T must be >= 2, got {T}")
+        if not dt > 0:
+            raise SdpError(f"dt must be > 0, got {dt}")
+        self.r_init, self.r_tgt = bool(r_init), bool(r_tgt)
+        self.name = "ur5-" + ("-".join(s for s, b in (("rinit", r_init), ("rtgt", r_tgt)) if b) or "fixed")
+        self.T, self.dt = int(T), float(dt)
+        self.model = load_model("ur5")
+        super().__init__()
+        self.nu = self.nv
+        self.n_xi = self.nx + 3
+        self.u_ub = self.model.effortLimit.copy()
+        self.u_lb = -self.u_ub
+        self.ee = self.model.getFrameId(EE_FRAME)
+
+    def params(self) -> dict:
+        return {**super().params(), "r_init": self.r_init, "r_tgt": self.r_tgt, "ee_frame": EE_FRAME,
+                "init_spread": INIT_SPREAD, "p_fixed": P_FIXED.tolist(),
+                "weights": {"ee": W_EE, "v": W_V, "u": W_U, "ee_T": W_EE_T, "v_T": W_V_T}}
+
+    # --------------------------------------------------------------- distribution
+    def ee_position_np(self, q: np.ndarray) -> np.ndarray:
+        """Numerical tool0 position (3,)."""
+        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+        return self.data.oMf[self.ee].translation.copy()
+
+    def sample_target(self, rng: np.random.Generator) -> np.ndarray:
+        """A reachable target (3,): tool0 of a random configuration, above the base plane."""
+        for _ in range(1000):
+            p = self.ee_position_np(rng.uniform(-np.pi, np.pi, self.nq))
+            if p[2] >= TGT_MIN_Z and np.hypot(p[0], p[1]) >= TGT_MIN_R:
+                return p
+        raise SdpError("could not sample a UR5 target")  # pragma: no cover - probability ~0
+
+    def sample_xi(self, rng: np.random.Generator) -> np.ndarray:
+        if self.r_init:
+            q0 = rng.uniform(-np.pi, np.pi, self.nq)
+        else:
+            q0 = Q_HOME + rng.uniform(-INIT_SPREAD, INIT_SPREAD, self.nq)
+        target = self.sample_target(rng) if self.r_tgt else P_FIXED.copy()
+        return np.concatenate([q0, np.zeros(self.nv), target])
+
+    def initial_state(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(xi, dtype=float)[: self.nx].copy()
+
+    def with_initial_state(self, xi: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """``xi`` with its initial state replaced by ``x0`` (same target)."""
+        xi = np.asarray(xi, dtype=float).copy()
+        xi[: self.nx] = x0
+        return xi
+
+    def target(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
+
+    # --------------------------------------------------------------- naive guess
+    def inverse_kinematics(self, q0: np.ndarray, target: np.ndarray, iters: int = 200,
+                           damping: float = 1e-3, tol: float = 1e-4) -> np.ndarray:
+        """Damped least-squares position IK for tool0 from ``q0`` (deterministic)."""
+        q = np.asarray(q0, dtype=float).copy()
+        for _ in range(iters):
+            pin.computeJointJacobians(self.model, self.data, q)
+            pin.framesForwardKinematics(self.model, self.data, q)
+            e = self.data.oMf[self.ee].translation - target
+            if np.linalg.norm(e) < tol:
+                break
+            J = pin.getFrameJacobian(self.model, self.data, self.ee, pin.LOCAL_WORLD_ALIGNED)[:3]
+            dq = -J.T @ np.linalg.solve(J @ J.T + damping * np.eye(3), e)
+            n = np.linalg.norm(dq)
+            q = q + (dq if n < 0.5 else dq * 0.5 / n)
+        return q
+
+    def naive_guess(self, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x0 = self.initial_state(xi)
+        q0 = x0[: self.nq]
+        q_tgt = self.inverse_kinematics(q0, self.target(xi))
+        s = np.linspace(0.0, 1.0, self.T + 1)[:, None]
+        Q = q0 + s * (q_tgt - q0)
+        V = np.repeat(((q_tgt - q0) / (self.T * self.dt))[None], self.T + 1, 0)
+        V[0] = x0[self.nq:]
+        U = np.empty((self.T, self.nu))
+        for t in range(self.T):
+            a = (V[t + 1] - V[t]) / self.dt
+            U[t] = pin.rnea(self.model, self.data, Q[t], V[t], a)
+        return np.hstack([Q, V]), np.clip(U, self.u_lb, self.u_ub)
+
+    # ------------------------------------------------------------ symbolic problem
+    def ee_position(self, q):
+        """casadi tool0 position (3,)."""
+        return self.cmodel.frame_placement(q, self.ee)[1]
+
+    def _running_cost(self, x, u, xi):
+        e = self.ee_position(x[: self.nq]) - xi[self.nx:self.nx + 3]
+        return W_EE * ca.sumsqr(e) + W_V * ca.sumsqr(x[self.nq:]) + W_U * ca.sumsqr(u)
+
+    def _terminal_cost(self, x, xi):
+        e = self.ee_position(x[: self.nq]) - xi[self.nx:self.nx + 3]
+        return W_EE_T * ca.sumsqr(e) + W_V_T * ca.sumsqr(x[self.nq:])
+
+    # ------------------------------------------------------------ policy maps
+    @property
+    def n_obs(self) -> int:
+        """Size of ``obs(x) = (cos q, sin q, v)``."""
+        return 2 * self.nq + self.nv
+
+    def observation(self, x: np.ndarray) -> np.ndarray:
+        """``obs(x) = (cos q, sin q, v)``: (..., 12) -> (..., 18)."""
+        x = np.asarray(x, dtype=float)
+        q, v = x[..., : self.nq], x[..., self.nq:]
+        return np.concatenate([np.cos(q), np.sin(q), v], axis=-1)
+
+    def observation_jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``d obs / d dx``: (..., 12) -> (..., 18, 12) (tangent = plain state for revolute joints)."""
+        x = np.asarray(x, dtype=float)
+        q = x[..., : self.nq]
+        n, nv = self.nq, self.nv
+        J = np.zeros(x.shape[:-1] + (2 * n + nv, n + nv))
+        idx = np.arange(n)
+        J[..., idx, idx] = -np.sin(q)
+        J[..., n + idx, idx] = np.cos(q)
+        J[..., 2 * n + np.arange(nv), n + np.arange(nv)] = 1.0
+        return J
+
+    def inverse_dynamics(self, x: np.ndarray, x_next: np.ndarray) -> np.ndarray:
+        """Torques taking ``x`` to (the velocity of) ``x_next`` in one step: (..., 12) x2 -> (..., 6).
+
+        ``u = rnea(q, v, (v_next - v) / dt)``, clipped to the torque limits; the exact inverse
+        of :meth:`step` when unclipped (the configuration of ``x_next`` follows from ``v_next``).
+        """
+        x, x_next = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(x_next, dtype=float))
+        flat, flat_next = x.reshape(-1, self.nx), x_next.reshape(-1, self.nx)
+        U = np.empty((len(flat), self.nu))
+        for i, (xa, xb) in enumerate(zip(flat, flat_next)):
+            q, v = xa[: self.nq], xa[self.nq:]
+            U[i] = pin.rnea(self.model, self.data, q, v, (xb[self.nq:] - v) / self.dt)
+        return np.clip(U, self.u_lb, self.u_ub).reshape(x.shape[:-1] + (self.nu,))
