@@ -244,7 +244,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
             "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
     path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": workers},
-                    task=config.task, task_params=task.params(), dims=dims,
+                    task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,
                     stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
                            "convergence_rate": stats.convergence_rate,
                            "mean_solve_time": stats.mean_solve_time})
