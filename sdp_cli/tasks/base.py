@@ -222,6 +222,13 @@ class Task(ABC):
         G = {"x": eye, "q": eye[: self.nv], "v": eye[self.nv:]}[self.action]
         return np.broadcast_to(G, x.shape[:-1] + G.shape).copy()
 
+    #: goal distance under which a rollout counts as having reached the goal
+    goal_tolerance: float = 0.05
+
+    def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
+        """Distance of state ``x`` (nx,) to the task's goal (m): the ``reached`` flag of rollouts."""
+        raise NotImplementedError(f"{type(self).__name__} defines no goal distance")
+
     def cost(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
         """The true objective ``J(X, U; xi)`` of eq. (1)."""
         run = self.f_running_cost.map(len(U))(X[:-1].T, U.T, np.repeat(xi[:, None], len(U), 1))

@@ -85,6 +85,11 @@ class PendulumTask(Task):
         V[0] = x0[self.nq:]
         return np.hstack([Q, V]), np.zeros((self.T, self.nu))
 
+    def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
+        """Tip distance to the upright tip position (m)."""
+        pin.framesForwardKinematics(self.model, self.data, np.asarray(x[: self.nq], float))
+        return float(np.linalg.norm(self.data.oMf[self.tip].translation - self.goal))
+
     def ee_position(self, q):
         """casadi tip position (3,)."""
         return self.cmodel.frame_placement(q, self.tip)[1]
