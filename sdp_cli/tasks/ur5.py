@@ -20,7 +20,7 @@ Task parameters ``xi = (q0 (6), v0 (6), p_target (3))``, ``n_xi = 15`` for every
 Default horizon T = 200 steps of dt = 0.01 s (3 chunks of T_h = 64).
 
 Costs (summed per step, not multiplied by dt, time-invariant; e = tool0(q) - p_target):
-    l_t = 10 ||e||^2 + 0.01 ||v||^2 + 1e-4 ||u||^2
+    l_t = 10 ||e||^2 + 0.05 ||v||^2 + 1e-4 ||u||^2
     l_T = 1000 ||e||^2 + 10 ||v||^2
 Naive guess ``Interpolate(x0, x_target)``: x_target = (q_ik, 0) with q_ik from damped
 least-squares position IK started at q0; q linearly interpolated, v its constant velocity
@@ -48,7 +48,7 @@ Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
 P_FIXED = np.array([0.4, 0.3, 0.4])
 INIT_SPREAD = 0.3  # rad, half-width of the small initial region (r_init = 0)
 TGT_MIN_Z, TGT_MIN_R = 0.1, 0.2  # m, random-target acceptance region
-W_EE, W_V, W_U, W_EE_T, W_V_T = 10.0, 0.01, 1e-4, 1000.0, 10.0
+W_EE, W_V, W_U, W_EE_T, W_V_T = 10.0, 0.05, 1e-4, 1000.0, 10.0
 
 #: task name -> (r_init, r_tgt)
 VARIANTS = {

@@ -1,0 +1,178 @@
+"""Quadrotor tasks: rotor geometry, casadi vs Pinocchio step, constraints, samples outside obstacles,
+tangent maps (finite differences), thrust allocation round trip, bounded least squares (KKT)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from sdp_cli.tasks import get_task, task_names
+from sdp_cli.tasks.quadrotor import (ALLOC, ARM, C_TAU, CLEARANCE, COLUMNS, GOAL_X, R_QUAD, START_X, U_MAX,
+                                     Y_RANGE, Z_CEIL, Z_FLOOR, Z_RANGE, bounded_least_squares)
+
+NAMES = [f"quadrotor-{n}" for n in COLUMNS]
+
+
+def _rand_state(task, rng):
+    q = pin.randomConfiguration(task.model, -3 * np.ones(7), 3 * np.ones(7))
+    return np.concatenate([q, rng.normal(size=6)])
+
+
+def test_names_and_dimensions():
+    assert set(NAMES + ["quadrotor"]) <= set(task_names())
+    for name in NAMES + ["quadrotor"]:
+        t = get_task(name)
+        assert (t.nq, t.nv, t.nx, t.ndx, t.nu, t.n_xi) == (7, 6, 13, 12, 4, 16)
+        assert t.n_h == 2 + len(t.columns)
+    assert get_task("quadrotor").name == "quadrotor" and len(get_task("quadrotor").columns) == 0
+    assert [len(get_task(n).columns) for n in NAMES] == [0, 1, 3, 9]
+
+
+def test_allocation_matches_rotor_geometry():
+    """Each rotor at ARM along +x, +y, -x, -y pushes along body z; yaw drag alternates."""
+    pos = ARM * np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], dtype=float)
+    spin = np.array([-1, 1, -1, 1])
+    for i in range(4):
+        f = np.array([0.0, 0.0, 1.0])
+        wrench = np.concatenate([f, np.cross(pos[i], f) + spin[i] * C_TAU * f])
+        np.testing.assert_allclose(ALLOC[:, i], wrench, atol=1e-15)
+    assert np.linalg.matrix_rank(ALLOC) == 4
+
+
+def test_hover_thrust_holds_the_quadrotor_still():
+    task = get_task("quadrotor-0")
+    x = np.concatenate([[0.3, -0.2, 1.0, 0, 0, 0, 1], np.zeros(6)])
+    np.testing.assert_allclose(task.step(x, task.u_hover), x, atol=1e-12)
+    assert np.isclose(task.u_hover.sum(), 1.477 * 9.81) and np.all(task.u_hover < U_MAX)
+    up = task.step(x, task.u_hover + 1.0)
+    assert up[2] > x[2] and up[9] > 0  # more thrust climbs
+
+
+def test_casadi_step_matches_pinocchio():
+    task = get_task("quadrotor-3")
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        x, u = _rand_state(task, rng), rng.uniform(task.u_lb, task.u_ub)
+        np.testing.assert_allclose(np.asarray(task.f_step(x, u)).ravel(), task.step(x, u), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(ca.evalf(task._control_to_tau(ca.DM(u)))).ravel(),
+                                   task.control_to_tau(u), atol=1e-15)
+
+
+def test_costs_match_their_formula():
+    task = get_task("quadrotor-0")
+    rng = np.random.default_rng(1)
+    xi = task.sample_xi(rng)
+    x, u = _rand_state(task, rng), rng.uniform(0, U_MAX, 4)
+    e, v, rot = x[:3] - task.target(xi), x[7:], x[3:6]
+    du = u - task.u_hover
+    np.testing.assert_allclose(float(task.f_running_cost(x, u, xi)),
+                               e @ e + 0.1 * v @ v + rot @ rot + 0.01 * du @ du, rtol=1e-12)
+    np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)), 100 * e @ e + 10 * v @ v + 10 * rot @ rot,
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_state_constraints_are_floor_ceiling_and_inflated_columns(name):
+    task = get_task(name)
+    rng = np.random.default_rng(2)
+    xi = task.sample_xi(rng)
+    for _ in range(200):
+        x = np.concatenate([rng.uniform([-3, -2.5, -0.5], [3, 2.5, 3.0]), [0, 0, 0, 1], np.zeros(6)])
+        h = np.asarray(task.f_state_constraints(x, xi)).ravel()
+        assert h.shape == (task.n_h,)
+        np.testing.assert_allclose(h[:2], [Z_FLOOR - x[2], x[2] - Z_CEIL])
+        clear = task.clearance(x[:3])
+        assert np.array_equal(h[2:] <= 0, clear >= 0)
+        R = task.columns[:, 2] + R_QUAD
+        np.testing.assert_allclose(h[2:], -clear * (clear + 2 * R) / (2 * R), atol=1e-12)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_samples_lie_outside_obstacles_at_equal_height(name):
+    task = get_task(name)
+    xis = np.array([task.sample_xi(np.random.default_rng([0, i])) for i in range(300)])
+    start, goal = xis[:, :3], xis[:, 13:16]
+    assert np.all(task.clearance(start) >= CLEARANCE) and np.all(task.clearance(goal) >= CLEARANCE)
+    np.testing.assert_array_equal(start[:, 2], goal[:, 2])
+    assert np.all((start[:, 2] >= Z_RANGE[0]) & (start[:, 2] <= Z_RANGE[1]))
+    assert np.all((Z_FLOOR < start[:, 2]) & (start[:, 2] < Z_CEIL))
+    np.testing.assert_array_equal(xis[:, 3:13], np.tile([0, 0, 0, 1] + [0] * 6, (300, 1)))
+    left = start[:, 0] < 0
+    assert 0.3 < left.mean() < 0.7  # start and goal swapped half of the time
+    lo, hi = np.where(left, START_X[0], GOAL_X[0]), np.where(left, START_X[1], GOAL_X[1])
+    assert np.all((lo <= start[:, 0]) & (start[:, 0] <= hi))
+    assert np.all((Y_RANGE[0] <= start[:, 1]) & (start[:, 1] <= Y_RANGE[1]))
+    # the straight line between start and goal (the naive guess) usually crosses a column
+    blocked = np.mean([task.constraint_violation(*task.naive_guess(xi), xi) > 0 for xi in xis[:100]])
+    assert blocked == 0.0 if not len(task.columns) else blocked > 0.6
+
+
+def test_naive_guess_is_a_straight_line_at_hover():
+    task = get_task("quadrotor-1")
+    xi = task.sample_xi(np.random.default_rng(3))
+    X, U = task.naive_guess(xi)
+    assert X.shape == (task.T + 1, 13) and U.shape == (task.T, 4)
+    np.testing.assert_array_equal(X[0], task.initial_state(xi))
+    np.testing.assert_allclose(X[-1, :3], task.target(xi))
+    np.testing.assert_allclose(np.linalg.norm(X[:, 3:7], axis=1), 1.0)
+    np.testing.assert_allclose(U, np.tile(task.u_hover, (task.T, 1)))
+
+
+def test_tangent_maps_and_jacobians_by_finite_differences():
+    task = get_task("quadrotor-0")
+    rng = np.random.default_rng(4)
+    X = np.array([_rand_state(task, rng) for _ in range(3)])
+    A = task.observation(X)
+    assert A.shape == (3, 12) and task.n_obs == task.n_action == 12 and task.action == "x"
+    np.testing.assert_allclose(task.state_action(X), A)
+    for x, a in zip(X, A):
+        np.testing.assert_allclose(a[:6], pin.difference(task.model, pin.neutral(task.model), x[:7]))
+        back = task.state_from_tangent(a)
+        np.testing.assert_allclose(task.difference(back, x), 0.0, atol=1e-10)
+    J = task.observation_jacobian(X)
+    np.testing.assert_allclose(task.state_action_jacobian(X), J)
+    eps = 1e-6
+    for b in range(3):
+        Jfd = np.stack([(task.observation(task.integrate(X[b], eps * e))
+                         - task.observation(task.integrate(X[b], -eps * e))) / (2 * eps)
+                        for e in np.eye(12)], axis=1)
+        np.testing.assert_allclose(J[b], Jfd, atol=1e-7)
+
+
+def test_casadi_integrate_matches_pinocchio():
+    task = get_task("quadrotor-0")
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        x, dx = _rand_state(task, rng), rng.normal(size=12)
+        np.testing.assert_allclose(np.asarray(task.f_integrate(x, dx)).ravel(), task.integrate(x, dx), atol=1e-12)
+
+
+def test_inverse_dynamics_reproduces_thrusts_of_reachable_states():
+    task = get_task("quadrotor-9")
+    rng = np.random.default_rng(6)
+    X = np.array([_rand_state(task, rng) for _ in range(6)])
+    U = rng.uniform(task.u_lb, task.u_ub, (6, 4))
+    U[0] = [0.0, U_MAX, 2.0, 0.0]  # thrusts on their bounds are reachable too
+    U[1] = task.u_hover
+    Xn = np.array([task.step(x, u) for x, u in zip(X, U)])
+    np.testing.assert_allclose(task.inverse_dynamics(X, Xn), U, atol=1e-9)
+    np.testing.assert_allclose(task.inverse_dynamics(X[2], Xn[2]), U[2], atol=1e-9)
+
+
+def test_bounded_least_squares_satisfies_kkt():
+    rng = np.random.default_rng(7)
+    lb, ub = np.zeros(4), np.full(4, U_MAX)
+    B = rng.normal(scale=20.0, size=(50, 6))
+    U = bounded_least_squares(ALLOC, B, lb, ub)
+    assert U.shape == (50, 4) and np.all(U >= lb) and np.all(U <= ub)
+    for u, b in zip(U, B):
+        g = ALLOC.T @ (ALLOC @ u - b)
+        free = (u > lb + 1e-9) & (u < ub - 1e-9)
+        np.testing.assert_allclose(g[free], 0.0, atol=1e-8)
+        assert np.all(g[u <= lb + 1e-9] >= -1e-8) and np.all(g[u >= ub - 1e-9] <= 1e-8)
+    # it beats random feasible points
+    cand = rng.uniform(lb, ub, (2000, 4))
+    for u, b in zip(U[:5], B[:5]):
+        assert np.sum((ALLOC @ u - b) ** 2) <= np.min(np.sum((cand @ ALLOC.T - b) ** 2, axis=1)) + 1e-9
