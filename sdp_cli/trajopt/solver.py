@@ -1,0 +1,256 @@
+"""The trajectory optimizer: a cached casadi NLP solver per (task, horizon, options).
+
+``get_solver(task)`` builds the multiple-shooting NLP of :mod:`sdp_cli.trajopt.ocp` once
+per process (and its compiled C code once per machine, see :mod:`sdp_cli.trajopt.jit`);
+``solver.solve(xi, X_init, U_init)`` only changes numbers. Every solve returns a
+:class:`SolveResult` with the trajectory, solver diagnostics and, at the solution, the
+tangent-space dynamics Jacobians and the feedback gains of :mod:`sdp_cli.trajopt.gains`.
+
+Solvers: ``fatrop`` (default; structure-exploiting interior point, stage-wise Riccati
+linear algebra) and ``ipopt`` (MUMPS). See ``bench/trajopt.py`` for the comparison.
+"""
+
+from __future__ import annotations
+
+import time
+import weakref
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from sdp_cli.errors import SdpError
+from sdp_cli.trajopt import gains as _gains
+from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
+from sdp_cli.trajopt.ocp import Layout, build_nlp
+
+SOLVERS = ("fatrop", "ipopt")
+DEFAULT_SOLVER = "fatrop"
+DEFAULT_MAX_ITER = 1000
+
+
+@dataclass
+class SolveResult:
+    """Outcome of one solve on horizon T (shapes below; ``ndx`` is the state tangent size).
+
+    ``converged`` is True only if the solver reports success AND the max constraint
+    violation is within the solver's ``viol_tol``. Non-converged results are returned
+    (never raised); ``status`` says why.
+    """
+
+    X: np.ndarray  # (T+1, nx)
+    U: np.ndarray  # (T, nu)
+    cost: float
+    iterations: int
+    converged: bool
+    solve_time: float  # seconds spent in the NLP solver
+    max_violation: float  # gaps, x0, h <= 0 and control bounds
+    status: str
+    K: np.ndarray  # (T, nu, ndx) du_t / dx_t
+    A: np.ndarray  # (T, ndx, ndx) df/dx
+    B: np.ndarray  # (T, ndx, nu) df/du
+    Phi: np.ndarray  # (T, ndx, ndx) A + B K
+    clamped: np.ndarray = field(default=None)  # (T, nu) bool, controls at a bound
+    gain_time: float = 0.0  # seconds spent linearizing + Riccati
+    solver: str = ""
+    x0: np.ndarray = field(default=None)  # (nx,)
+    xi: np.ndarray = field(default=None)  # (n_xi,)
+
+
+_BUILDS = 0
+
+
+def build_count() -> int:
+    """How many solvers this process has built (a re-solve must not change it)."""
+    return _BUILDS
+
+
+def _plugin_options(name: str, lay: Layout, max_iter: int, tol: float) -> dict:
+    opts = {"print_time": False, "error_on_fail": False, "equality": lay.equality().tolist()}
+    if name == "ipopt":
+        opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
+                         "acceptable_iter": 0}
+    else:
+        opts.update(lay.fatrop_structure())
+        opts["fatrop"] = {"print_level": 0, "max_iter": max_iter, "tol": tol, "acceptable_iter": 0}
+    return opts
+
+
+class TrajOptSolver:
+    """Solver of OCP (1) for one task and horizon (build with :func:`get_solver`)."""
+
+    def __init__(self, task, horizon: int, solver: str = DEFAULT_SOLVER, max_iter: int = DEFAULT_MAX_ITER,
+                 tol: float = 1e-6, viol_tol: float = 1e-6, jit: bool = True):
+        global _BUILDS
+        t_start = time.perf_counter()
+        self.task, self.T, self.solver_name = task, int(horizon), solver
+        self.max_iter, self.tol, self.viol_tol = int(max_iter), float(tol), float(viol_tol)
+        nlp, self.layout = build_nlp(task, self.T)
+        opts = _plugin_options(solver, self.layout, self.max_iter, self.tol)
+        stage = _gains.stage_derivative_functions(task)
+        gfun = {"lin_stage_map": stage["lin_stage"].map(self.T),
+                "lin_term": stage["lin_term"],
+                "chart_map": stage["chart"].map(self.T + 1),
+                "riccati": _gains.riccati_function(task.ndx, task.nu, self.T)}
+        tag = f"sdp_{task.name}_T{self.T}_{solver}"
+        lib = None
+        if jit:
+            proto = ca.nlpsol(tag, solver, nlp, opts)
+            oracle = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]], ["x", "p"], ["f", "g"])
+            funcs = [oracle] + [proto.get_function(n) for n in proto.get_function()]
+            lib = compile_functions(tag, funcs + list(gfun.values()))
+        if lib is not None:
+            self._nlpsol = ca.nlpsol(tag, solver, lib, opts)
+            self._gfun = {k: ca.external(f.name(), lib) for k, f in gfun.items()}
+        else:
+            self._nlpsol = ca.nlpsol(tag, solver, nlp, {**opts, "expand": True})
+            self._gfun = gfun
+        self.jitted = lib is not None
+        lay = self.layout
+        self._xi_, self._ui_ = lay.x_index(), lay.u_index()
+        self._gap_i, self._init_i, self._h_i = lay.g_index()
+        self._eq = lay.equality()
+        self._lbx, self._ubx = np.full(lay.nw, -np.inf), np.full(lay.nw, np.inf)
+        self._lbx[self._ui_] = task.u_lb
+        self._ubx[self._ui_] = task.u_ub
+        self._lbg = np.where(self._eq, 0.0, -np.inf)
+        self._ubg = np.zeros(lay.ng)
+        self.build_time = time.perf_counter() - t_start
+        _BUILDS += 1
+
+    def __repr__(self) -> str:
+        return (f"TrajOptSolver(task={self.task.name!r}, T={self.T}, solver={self.solver_name!r}, "
+                f"max_iter={self.max_iter}, jit={self.jitted})")
+
+    # ------------------------------------------------------------------ input
+    def _array(self, name: str, a, shape: tuple) -> np.ndarray:
+        try:
+            arr = np.asarray(a, dtype=float)
+        except (TypeError, ValueError):
+            raise SdpError(f"{name} must be a numeric array of shape {shape}") from None
+        if arr.shape != shape:
+            raise SdpError(f"{name} has shape {arr.shape}, expected {shape} "
+                           f"(task {self.task.name}, horizon {self.T})")
+        if not np.all(np.isfinite(arr)):
+            raise SdpError(f"{name} contains NaN or inf")
+        return arr
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
+        """Solve from ``x0 = task.initial_state(xi)``; guess X_init (T+1, nx), U_init (T, nu)."""
+        xi = self._array("xi", xi, (self.task.n_xi,))
+        return self.solve_from(self.task.initial_state(xi), xi, X_init, U_init, gains=gains)
+
+    def solve_from(self, x0, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
+        """Solve from an explicit initial state ``x0 (nx,)``; never raises on non-convergence."""
+        task, T = self.task, self.T
+        x0 = self._array("x0", x0, (task.nx,))
+        xi = self._array("xi", xi, (task.n_xi,))
+        X_init = self._array("X_init", X_init, (T + 1, task.nx))
+        U_init = self._array("U_init", U_init, (T, task.nu))
+        w0 = self.layout.pack(X_init, U_init)
+        w0[self._xi_[0]] = x0
+        t0 = time.perf_counter()
+        try:
+            r = self._nlpsol(x0=w0, p=np.concatenate([x0, xi]), lbx=self._lbx, ubx=self._ubx,
+                             lbg=self._lbg, ubg=self._ubg)
+            stats = self._nlpsol.stats()
+        except RuntimeError as e:  # evaluation errors: report, never raise
+            solve_time = time.perf_counter() - t0
+            return self._failed(x0, xi, X_init, U_init, f"solver error: {str(e).splitlines()[-1]}", solve_time)
+        solve_time = time.perf_counter() - t0
+        w = np.asarray(r["x"]).ravel()
+        g = np.asarray(r["g"]).ravel()
+        X, U = self.layout.unpack(w)
+        viol = self._violation(g, U)
+        success = bool(stats.get("success", False))
+        converged = success and viol <= self.viol_tol and bool(np.all(np.isfinite(w)))
+        raw = stats.get("return_status", "?")
+        if converged:
+            status = "converged"
+        elif not success:
+            status = f"not converged: {self.solver_name} returned {raw} " \
+                     f"({stats.get('unified_return_status', '')}) after {stats.get('iter_count', 0)} iterations"
+        else:
+            status = f"not converged: constraint violation {viol:.2e} > {self.viol_tol:.0e}"
+        res = SolveResult(X=X, U=U, cost=float(r["f"]), iterations=int(stats.get("iter_count", 0)),
+                          converged=converged, solve_time=solve_time, max_violation=viol, status=status,
+                          **self._nan_gains(), solver=self.solver_name, x0=x0, xi=xi)
+        res.clamped = _gains.active_controls(U, task.u_lb, task.u_ub)
+        if gains and np.all(np.isfinite(w)):
+            self._add_gains(res, np.asarray(r["lam_g"]).ravel(), g)
+        return res
+
+    def _violation(self, g: np.ndarray, U: np.ndarray) -> float:
+        v = np.concatenate([np.abs(g[self._eq]), np.maximum(g[~self._eq], 0.0),
+                            np.maximum(U - self.task.u_ub, 0.0).ravel(),
+                            np.maximum(self.task.u_lb - U, 0.0).ravel()])
+        return float(np.max(v, initial=0.0)) if np.all(np.isfinite(v)) else float("inf")
+
+    def _nan_gains(self) -> dict:
+        T, ndx, nu = self.T, self.task.ndx, self.task.nu
+        nan = np.full
+        return {"K": nan((T, nu, ndx), np.nan), "A": nan((T, ndx, ndx), np.nan),
+                "B": nan((T, ndx, nu), np.nan), "Phi": nan((T, ndx, ndx), np.nan)}
+
+    def _failed(self, x0, xi, X, U, status, solve_time) -> SolveResult:
+        g = np.zeros(self.layout.ng)  # violation of the guess, evaluated without the solver
+        try:
+            g = np.asarray(self._nlpsol.get_function("nlp_g")(self.layout.pack(X, U), np.concatenate([x0, xi])))
+        except RuntimeError:
+            g[:] = np.inf
+        return SolveResult(X=X, U=U, cost=float("nan"), iterations=0, converged=False, solve_time=solve_time,
+                           max_violation=self._violation(g.ravel(), U), status=status, **self._nan_gains(),
+                           clamped=np.zeros((self.T, self.task.nu), dtype=bool), solver=self.solver_name,
+                           x0=x0, xi=xi)
+
+    def _add_gains(self, res: SolveResult, lam_g: np.ndarray, g: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        task = self.task
+        mu_h = lam_g[self._h_i]
+        try:
+            A, B, H, HT, dh = _gains.linearize(self._gfun, task, res.X, res.U, res.xi, lam_g[self._gap_i],
+                                               lam_g[self._init_i], mu_h)
+            act = (g[self._h_i] > -_gains.STATE_ACTIVE_TOL) & (mu_h > _gains.STATE_ACTIVE_TOL)  # (T, n_h)
+            if act.any():
+                C = [np.zeros((0, task.ndx))] + [dh[t + 1][act[t]] for t in range(self.T)]
+                K, _ = _gains.riccati_gains(A, B, H, HT, res.clamped, C)
+            else:
+                K = _gains.riccati_gains_fast(self._gfun["riccati"], A, B, H, HT, res.clamped)
+            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+                raise np.linalg.LinAlgError("non-finite linearization")
+        except np.linalg.LinAlgError as e:
+            res.status += f"; gains unavailable ({e})"
+        else:
+            res.K, res.A, res.B, res.Phi = K, A, B, A + B @ K
+        res.gain_time = time.perf_counter() - t0
+
+
+_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def get_solver(task, horizon: int | None = None, *, solver: str = DEFAULT_SOLVER,
+               max_iter: int = DEFAULT_MAX_ITER, tol: float = 1e-6, viol_tol: float = 1e-6,
+               jit: bool | None = None) -> TrajOptSolver:
+    """The solver of ``task`` on ``horizon`` (default ``task.T``), built once per process.
+
+    ``solver``: ``"fatrop"`` or ``"ipopt"``; ``max_iter``: iteration cap (non-converged
+    solves are reported, not kept silently); ``tol``: solver tolerance; ``viol_tol``: max
+    constraint violation accepted as converged; ``jit``: compile the NLP functions with gcc
+    into the on-disk cache (default on unless ``SDP_JIT=0``; falls back when compiling fails).
+    """
+    if solver not in SOLVERS:
+        raise SdpError(f"unknown solver {solver!r}; valid solvers: {', '.join(SOLVERS)}")
+    T = task.T if horizon is None else int(horizon)
+    if T < 1:
+        raise SdpError(f"horizon must be >= 1, got {horizon}")
+    if int(max_iter) < 0:
+        raise SdpError(f"max_iter must be >= 0, got {max_iter}")
+    if not (tol > 0 and viol_tol > 0):
+        raise SdpError("tol and viol_tol must be > 0")
+    jit = jit_enabled_by_default() if jit is None else bool(jit)
+    key = (T, solver, int(max_iter), float(tol), float(viol_tol), jit)
+    per_task = _CACHE.setdefault(task, {})
+    if key not in per_task:
+        per_task[key] = TrajOptSolver(task, T, solver, int(max_iter), float(tol), float(viol_tol), jit)
+    return per_task[key]
