@@ -1,0 +1,30 @@
+"""Policies: conditional U-Net + DDPM (SDP, DP) and MLP baselines (PDDP, PDDP+S).
+
+Rollout-side API (everything in physical units, numpy in / numpy out, batched over instances)::
+
+    from sdp_cli.policy import load_policy
+    pol = load_policy("runs/sdp", device="cpu")   # a run folder or a checkpoint file; EMA weights
+    pol.task, pol.method, pol.action, pol.is_diffusion
+
+    # diffusion methods (pol.is_diffusion): one reverse DDPM pass, Algorithm 2 lines 3-7
+    g = torch.Generator().manual_seed(0)
+    tau0 = pol.predict_chunk(xi,        # (B, n_xi)
+                             x_hist,    # (B, nx) or (B, T_o, nx): current state x_t
+                             u_hist,    # (B, nu) or (B, T_o, nu): previous control u_{t-1}, zeros at t = 0
+                             generator=g, k_rollout=None)   # k_rollout <= pol.K denoising steps
+    # -> (B, T_h, A): rows [:T_o] are the inpainted history a_hist, play rows [T_o : T_o + T_a]
+    #    (T_a <= T_h - T_o). For pol.action == "u" these rows are the torques u_t, u_{t+1}, ...;
+    #    otherwise they are g(x_{t+1}), ... (pol.task.state_action) and the controls come from
+    #    inverse dynamics.
+
+    # MLP methods (not pol.is_diffusion)
+    u = pol.act(x, xi)                  # (B, nx), (B, n_xi) -> (B, nu)
+
+The observation fed to the network is ``o_t = (task.observation(x_t), u_{t-1})``, normalized
+by the normalizer stored in the checkpoint (:mod:`sdp_cli.data.normalizer`).
+"""
+
+from sdp_cli.policy.api import DiffusionPolicy, MLPPolicy, Policy, load_policy
+from sdp_cli.policy.config import METHODS, TrainConfig
+
+__all__ = ["load_policy", "Policy", "DiffusionPolicy", "MLPPolicy", "TrainConfig", "METHODS"]

@@ -1,0 +1,74 @@
+"""Stochastic Sobolev terms (eqs. (4) and (6) of the paper).
+
+A model output ``y = f(delta) (B, *out)`` depends on a normalized state perturbation
+``delta (B, d_in)`` (evaluated at ``delta = 0``); the target Jacobian is ``J (B, *out, d_in)``.
+With ``M = J - dy/d delta`` per sample and ``d_out = prod(out)``:
+
+- :func:`sobolev_output_projection` (eq. (6), reverse over reverse): ``||v^T M||^2`` with
+  ``v`` uniform on the unit sphere of the output space, ``E_v = ||M||_F^2 / d_out``;
+- :func:`sobolev_input_projection` (forward mode, cheaper here because ``d_in << d_out``):
+  ``(d_in / d_out) ||M w||^2`` with ``w`` uniform on the unit sphere of the input space,
+  ``E_w = ||M||_F^2 / d_out`` too, so ``alpha_Sobolev`` keeps its meaning.
+
+Both average over ``n_proj`` directions and return ``(y, term (B,))``; ``y`` is the primal
+output at ``delta = 0`` (shared with the regression term, no recomputation). The
+regression term is the per-element mean squared error, ``||Delta y||^2 / d_out``,
+which is consistent with these scalings: ``E[loss] = (||Delta y||^2 + alpha ||M||_F^2) / d_out``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch.func import jvp
+
+
+def random_unit(shape: tuple, generator: torch.Generator | None = None, device=None,
+                dtype=torch.float32) -> torch.Tensor:
+    """Vectors uniform on the unit sphere over the trailing dims of ``shape[1:]`` (per row)."""
+    v = torch.randn(shape, generator=generator, device=device, dtype=dtype)
+    flat = v.reshape(shape[0], -1)
+    return (flat / flat.norm(dim=1, keepdim=True).clamp_min(1e-12)).reshape(shape)
+
+
+def sobolev_output_projection(f: Callable[[torch.Tensor], torch.Tensor], d_in: int, J: torch.Tensor,
+                              n_proj: int = 1, generator: torch.Generator | None = None):
+    """``(y, mean_i ||v_i^T J - d(v_i^T f)/d delta||^2)`` by double backward. J (B, *out, d_in)."""
+    B = J.shape[0]
+    delta = torch.zeros(B, d_in, device=J.device, dtype=J.dtype, requires_grad=True)
+    with torch.enable_grad():
+        y = f(delta)
+        term = torch.zeros(B, device=J.device, dtype=J.dtype)
+        for i in range(n_proj):
+            v = random_unit(y.shape, generator, J.device, J.dtype)
+            (g,) = torch.autograd.grad((v * y).sum(), delta, create_graph=True)
+            target = torch.einsum("bo,boi->bi", v.reshape(B, -1), J.reshape(B, -1, d_in))
+            term = term + ((target - g) ** 2).sum(-1)
+    return y, term / n_proj
+
+
+def sobolev_input_projection(f: Callable[[torch.Tensor], torch.Tensor], d_in: int, J: torch.Tensor,
+                             n_proj: int = 1, generator: torch.Generator | None = None):
+    """``(y, mean_i (d_in/d_out) ||J w_i - df/d delta w_i||^2)`` by forward-mode JVPs."""
+    B = J.shape[0]
+    delta = torch.zeros(B, d_in, device=J.device, dtype=J.dtype)
+    Jf = J.reshape(B, -1, d_in)
+    d_out = Jf.shape[1]
+    term = torch.zeros(B, device=J.device, dtype=J.dtype)
+    y = None
+    for _ in range(n_proj):
+        w = random_unit((B, d_in), generator, J.device, J.dtype)
+        y, ydot = jvp(f, (delta,), (w,))
+        target = torch.einsum("boi,bi->bo", Jf, w)
+        term = term + ((target - ydot.reshape(B, -1)) ** 2).sum(-1)
+    return y, term * (d_in / d_out) / n_proj
+
+
+def sobolev_term(mode: str, f, d_in: int, J: torch.Tensor, n_proj: int = 1, generator=None):
+    """Dispatch on ``mode``: "vjp" (output projection, eq. (6)) or "jvp" (input projection)."""
+    if mode == "vjp":
+        return sobolev_output_projection(f, d_in, J, n_proj, generator)
+    if mode == "jvp":
+        return sobolev_input_projection(f, d_in, J, n_proj, generator)
+    raise ValueError(f"unknown Sobolev mode {mode!r}")

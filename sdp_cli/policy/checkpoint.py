@@ -1,0 +1,84 @@
+"""Policy checkpoints: one ``torch.save`` file, written atomically.
+
+Content (a dict of plain types and tensors, loadable with ``weights_only=True``):
+``format``, ``format_version``, ``created``, ``method``, ``config`` (full :class:`TrainConfig`),
+``dims`` (n_action, n_obs, n_xi, ndx), ``action``, ``task``, ``task_options``, ``task_params``,
+``dataset`` (path, sha256 fingerprint, n_traj, T), ``provenance`` (versions, git revision),
+``epoch``, ``step``, ``total_steps``, ``finished``, ``model`` (weights + normalizer buffers),
+``ema_model`` (same keys, EMA weights) and ``train_state`` (optimizer, LR schedule, EMA
+internals, RNG state, metrics rows) for ``--resume``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import io
+from pathlib import Path
+
+import torch
+
+from sdp_cli.data.artifacts import atomic_write_bytes, provenance
+from sdp_cli.errors import SdpError
+from sdp_cli.policy.config import TrainConfig
+
+FORMAT = "sdp-policy"
+FORMAT_VERSION = 1
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def save_checkpoint(path: str | Path, payload: dict) -> Path:
+    """Atomically write ``payload`` (adds format, version, created, provenance)."""
+    payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
+               "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+               "provenance": provenance(), **payload}
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint file, or a run folder holding ``checkpoint.pt``."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / CHECKPOINT_NAME
+    if not p.is_file():
+        raise SdpError(f"checkpoint not found: {path}")
+    return p
+
+
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+    p = resolve_checkpoint(path)
+    try:
+        ck = torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unpickling failure is a corrupt file for the user
+        raise SdpError(f"corrupt checkpoint {p}: {type(e).__name__}: {e}") from None
+    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
+        raise SdpError(f"{p} is not an sdp policy checkpoint")
+    if ck.get("format_version", 0) > FORMAT_VERSION:
+        raise SdpError(f"{p} has format_version {ck['format_version']}, newer than this sdp; upgrade sdp")
+    return ck
+
+
+def build_net(cfg: TrainConfig, dims: dict):
+    """A fresh network of the right family for ``cfg.method``."""
+    if cfg.is_diffusion:
+        from sdp_cli.policy.diffusion import DiffusionNet
+        return DiffusionNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
+    from sdp_cli.policy.mlp import MLPNet
+    return MLPNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
+
+
+def net_from_checkpoint(ck: dict, use_ema: bool = True):
+    cfg = TrainConfig.from_dict(ck["config"])
+    net = build_net(cfg, ck["dims"])
+    net.load_state_dict(ck["ema_model"] if use_ema and ck.get("ema_model") is not None else ck["model"])
+    return net

@@ -1,0 +1,90 @@
+"""Configuration of a policy and of its training run (stored in full in every checkpoint)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+from sdp_cli.errors import SdpError
+
+METHODS = ("sdp", "dp", "pddp", "pddp_s")
+DIFFUSION_METHODS = ("sdp", "dp")
+SOBOLEV_METHODS = ("sdp", "pddp_s")
+SOBOLEV_MODES = ("jvp", "vjp")
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (defaults follow the paper / diffusion policy)."""
+
+    method: str = "sdp"
+    epochs: int = 1000
+    seed: int = 0
+    batch_size: int = 256
+    # diffusion model
+    T_h: int = 32
+    T_o: int = 1
+    K: int = 5                       # diffusion steps (train); K_rollout <= K at inference
+    down_dims: list = field(default_factory=lambda: [24, 24, 32, 32])
+    kernel_size: int = 5
+    n_groups: int = 8
+    step_embed_dim: int = 64
+    clip_sample: bool = True
+    action: str | None = None        # None: the task's action variable
+    # MLP baselines
+    mlp_hidden: list = field(default_factory=lambda: [256, 256, 256])
+    # Sobolev term
+    alpha_sobolev: float = 1.0
+    n_proj: int = 1
+    sobolev_mode: str = "jvp"        # "jvp": projection on the x side (forward mode); "vjp": eq. (6)
+    # optimization (diffusion policy defaults)
+    lr: float = 1e-3
+    weight_decay: float = 1e-6
+    betas: tuple = (0.95, 0.999)
+    warmup_steps: int | None = None  # None: min(500, total_steps // 10)
+    grad_clip: float = 1.0
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+    # bookkeeping
+    save_at: list = field(default_factory=list)   # epochs at which to keep a checkpoint
+    checkpoint_every_s: float = 60.0
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise SdpError(f"method must be one of {', '.join(METHODS)}; got {self.method!r}")
+        if self.sobolev_mode not in SOBOLEV_MODES:
+            raise SdpError(f"sobolev mode must be one of {', '.join(SOBOLEV_MODES)}; got {self.sobolev_mode!r}")
+        for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
+            if getattr(self, name) <= 0:
+                raise SdpError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.alpha_sobolev < 0:
+            raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
+        if self.is_diffusion:
+            levels = len(self.down_dims)
+            if self.T_h % (2 ** (levels - 1)):
+                raise SdpError(f"T_h = {self.T_h} must be divisible by 2^(len(down_dims) - 1) = "
+                               f"{2 ** (levels - 1)} for the U-Net")
+            bad = [d for d in self.down_dims if d % self.n_groups]
+            if bad:
+                raise SdpError(f"down_dims {bad} not divisible by n_groups = {self.n_groups}")
+        self.down_dims = [int(d) for d in self.down_dims]
+        self.mlp_hidden = [int(d) for d in self.mlp_hidden]
+        self.betas = tuple(float(b) for b in self.betas)
+        self.save_at = sorted(int(e) for e in self.save_at)
+
+    @property
+    def is_diffusion(self) -> bool:
+        return self.method in DIFFUSION_METHODS
+
+    @property
+    def sobolev(self) -> bool:
+        return self.method in SOBOLEV_METHODS
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["betas"] = list(self.betas)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})

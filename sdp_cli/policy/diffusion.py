@@ -1,0 +1,106 @@
+"""DDPM diffusion policy over action chunks: network, training losses (eqs. (2), (6)), sampling.
+
+Everything inside works in normalized units (:mod:`sdp_cli.data.normalizer`). The
+scheduler is diffusers' ``DDPMScheduler`` with the squared-cosine schedule
+(``squaredcos_cap_v2``), ``prediction_type="sample"`` (the network predicts ``tau_0``) and
+``K`` train steps; ``clip_sample`` clips predictions to [-1, 1], matching the min-max
+normalization of actions. diffusers' timestep index ``k - 1`` is the paper's ``k``.
+
+Inpainting: the first ``T_o`` rows of ``tau_k`` are replaced by ``a_hist`` before every
+network call, in training (Algorithm 1 line 19) and sampling (Algorithm 2 line 5); these
+rows are masked out of the loss.
+
+Sobolev term: the derivative is taken w.r.t. one leaf ``delta (B, ndx)``, a normalized
+tangent perturbation of ``x_hist``, which feeds the observation ``o_hist`` (through
+``obs_jac``) and, for state control, the inpainted ``a_hist`` (through ``a_hist_jac``).
+Both enter linearly, which is exact to first order at ``delta = 0`` and is all the
+Sobolev term needs (values at ``delta = 0`` are the data).
+"""
+
+from __future__ import annotations
+
+import torch
+from diffusers import DDPMScheduler
+from torch import nn
+
+from sdp_cli.data.normalizer import Normalizer
+from sdp_cli.losses.sobolev import sobolev_term
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.unet import ConditionalUnet1D
+
+
+def make_scheduler(cfg: TrainConfig) -> DDPMScheduler:
+    return DDPMScheduler(num_train_timesteps=cfg.K, beta_schedule="squaredcos_cap_v2",
+                         clip_sample=cfg.clip_sample, prediction_type="sample")
+
+
+class DiffusionNet(nn.Module):
+    """Normalizer + conditional U-Net. ``forward(tau_k, k, xi_n, obs_n) -> tau_0 prediction``.
+
+    Shapes: ``tau_k (B, T_h, A)``, ``k (B,)`` scheduler indices, ``xi_n (B, n_xi)``,
+    ``obs_n (B, T_o, n_o)``; all normalized.
+    """
+
+    def __init__(self, cfg: TrainConfig, n_action: int, n_obs: int, n_xi: int, ndx: int):
+        super().__init__()
+        self.cfg = cfg
+        self.dims = {"n_action": n_action, "n_obs": n_obs, "n_xi": n_xi, "ndx": ndx}
+        self.normalizer = Normalizer(n_action, n_obs, n_xi, ndx)
+        self.unet = ConditionalUnet1D(n_action, n_xi + cfg.T_o * n_obs, cfg.down_dims, cfg.kernel_size,
+                                      cfg.n_groups, cfg.step_embed_dim)
+
+    def forward(self, tau_k, k, xi_n, obs_n):
+        return self.unet(tau_k, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1))
+
+
+def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg: TrainConfig,
+                   generator: torch.Generator | None = None, sobolev: bool = False):
+    """``(loss, {"dp": ..., "sobolev": ...})`` for a batch of normalized chunk tensors.
+
+    ``batch``: ``tau0 (B, T_h, A)``, ``a_hist (B, T_o, A)``, ``obs (B, T_o, n_o)``,
+    ``obs_jac (B, T_o, n_o, ndx)``, ``xi (B, n_xi)``; for Sobolev also ``jac (B, T_h, A, ndx)``
+    and, for state control, ``a_hist_jac (B, T_o, A, ndx)``.
+    """
+    tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
+    B, T_o = tau0.shape[0], cfg.T_o
+    dev = tau0.device
+    noise = torch.randn(tau0.shape, generator=generator, device=dev)
+    k = torch.randint(0, cfg.K, (B,), generator=generator, device=dev)
+    tau_k = scheduler.add_noise(tau0, noise, k)
+    rest = tau_k[:, T_o:]
+    if not sobolev:
+        x = torch.cat([a_hist, rest], dim=1)
+        pred = net(x, k, xi, obs)[:, T_o:]
+        dp = ((pred - tau0[:, T_o:]) ** 2).mean()
+        return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dev)}
+
+    obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
+
+    def f(delta):   # delta (B, ndx) -> predicted tau_0 rows T_o: (B, T_h - T_o, A)
+        o = obs + torch.einsum("btoi,bi->bto", obs_jac, delta)
+        a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
+        return net(torch.cat([a, rest], dim=1), k, xi, o)[:, T_o:]
+
+    J = batch["jac"][:, T_o:]
+    pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator)
+    dp = ((pred - tau0[:, T_o:]) ** 2).mean()
+    sob = term.mean()
+    loss = dp + cfg.alpha_sobolev * sob
+    return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
+
+
+@torch.no_grad()
+def sample_chunk(net: DiffusionNet, scheduler: DDPMScheduler, xi_n, obs_n, a_hist_n, T_h: int,
+                 k_rollout: int | None = None, generator: torch.Generator | None = None):
+    """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``(B, T_h, A)`` with inpainted history."""
+    cfg = net.cfg
+    B, T_o, A = a_hist_n.shape
+    scheduler.set_timesteps(k_rollout or cfg.K, device=a_hist_n.device)
+    tau = torch.randn((B, T_h, A), generator=generator, device=a_hist_n.device)
+    for t in scheduler.timesteps:
+        tau[:, :T_o] = a_hist_n
+        kk = torch.full((B,), int(t), device=tau.device, dtype=torch.long)
+        pred = net(tau, kk, xi_n, obs_n)
+        tau = scheduler.step(pred, t, tau, generator=generator).prev_sample
+    tau[:, :T_o] = a_hist_n
+    return tau

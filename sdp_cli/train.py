@@ -1,0 +1,251 @@
+"""``sdp train``: fit SDP, DP, PDDP or PDDP+S on a dataset artifact (Algorithm 1, lines 11-23).
+
+- Epochs follow the paper: ``E = |D| (T - T_h) / T_h`` chunks for diffusion policies,
+  ``|D| T`` pairs for the MLPs; one epoch is ``ceil(E / B)`` steps, each on a batch of
+  ``B`` samples drawn uniformly with replacement.
+- AdamW, cosine learning rate with linear warm-up, EMA of the weights (diffusers'
+  ``EMAModel`` with warm-up, power 0.75, as diffusion policy), gradient-norm clipping.
+- Run folder ``--out``: ``checkpoint.pt`` (latest; rewritten atomically every
+  ``checkpoint_every_s`` seconds, at the end and on Ctrl-C), ``epoch_<E>.pt`` for each
+  ``--save-at`` epoch, ``metrics.csv`` (step, epoch, loss, dp, sobolev, lr, grad_norm, wall_time).
+- ``resume=True`` continues from ``checkpoint.pt`` bit-for-bit (optimizer, schedule, EMA
+  and RNG state are restored). ``init`` starts from another checkpoint's weights, EMA
+  and normalizer (the alternating loop's warm start); its architecture settings win.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset, task_options_of
+from sdp_cli.errors import SdpError
+from sdp_cli.data.artifacts import atomic_write_bytes
+from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
+                                       save_checkpoint)
+from sdp_cli.policy.config import TrainConfig
+
+ARCH_FIELDS = ("T_h", "T_o", "K", "down_dims", "kernel_size", "n_groups", "step_embed_dim", "clip_sample",
+               "action", "mlp_hidden")
+METRIC_FIELDS = ("step", "epoch", "loss", "dp", "sobolev", "lr", "grad_norm", "wall_time")
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise SdpError(f"invalid device {device!r} (use auto, cpu, cuda, cuda:0)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SdpError("--device cuda requested but CUDA is not available")
+    return dev
+
+
+def make_loss(cfg: TrainConfig, scheduler=None) -> Callable:
+    """``loss_fn(net, batch, generator) -> (loss, parts)`` for ``cfg.method``."""
+    if cfg.is_diffusion:
+        from sdp_cli.policy.diffusion import diffusion_loss
+        return lambda net, b, g: diffusion_loss(net, scheduler, b, cfg, g, sobolev=cfg.sobolev)
+    from sdp_cli.policy.mlp import mlp_loss
+    return lambda net, b, g: mlp_loss(net, b, cfg, g, sobolev=cfg.sobolev)
+
+
+def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu"):
+    """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer."""
+    with_jac = cfg.sobolev
+    if cfg.is_diffusion:
+        action = cfg.action or task.action
+        ds = ChunkDataset(task, arrays, cfg.T_h, cfg.T_o, action, with_jacobians=with_jac)
+        n_obs = task.n_obs
+        dims = {"n_action": ds.tau0.shape[-1], "n_obs": n_obs + task.nu, "n_xi": task.n_xi, "ndx": task.ndx}
+    else:
+        action = "u"
+        ds = PairDataset(task, arrays, with_jacobians=with_jac)
+        dims = {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+    net = build_net(cfg, dims)
+    norm = normalizer if normalizer is not None else fit_normalizer(task, arrays, action)
+    net.normalizer.load_state_dict(norm.state_dict())
+    tensors = ds.tensors(net.normalizer, device)
+    return net.to(device), tensors, ds.epoch_size(), action, dims
+
+
+def _metrics_bytes(rows: list[dict]) -> bytes:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=METRIC_FIELDS)
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def _read_metrics(path: Path, max_step: int) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return [r for r in csv.DictReader(f) if int(r["step"]) <= max_step]
+
+
+def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
+          init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
+          on_step: Callable[[int], None] | None = None) -> Path:
+    """Train and return the path of the final checkpoint (see the module docstring)."""
+    from diffusers.optimization import get_scheduler
+    from diffusers.training_utils import EMAModel
+
+    dev = resolve_device(device)
+    out = Path(out)
+    ck_path = out / CHECKPOINT_NAME
+    if out.exists() and not out.is_dir():
+        raise SdpError(f"--out {out} exists and is not a folder")
+    prev = None
+    if ck_path.exists():
+        if not resume:
+            raise SdpError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+        prev = load_checkpoint(ck_path)
+        stored = TrainConfig.from_dict(prev["config"])
+        if stored.method != cfg.method:
+            raise SdpError(f"cannot resume: {ck_path} is a {stored.method!r} run, not {cfg.method!r}")
+        cfg = stored
+    init_ck = None
+    if init is not None and prev is None:
+        init_ck = load_checkpoint(init)
+        init_cfg = TrainConfig.from_dict(init_ck["config"])
+        if init_cfg.method != cfg.method:
+            raise SdpError(f"--init checkpoint is a {init_cfg.method!r} policy, not {cfg.method!r}")
+        cfg = TrainConfig.from_dict({**cfg.to_dict(), **{k: getattr(init_cfg, k) for k in ARCH_FIELDS}})
+
+    arrays, meta, task = load_dataset(data, require_gains=cfg.sobolev)
+    fingerprint = file_sha256(data)
+    for ref, what in ((prev, "resumed run"), (init_ck, "--init checkpoint")):
+        if ref is not None and ref["task"] != meta["task"]:
+            raise SdpError(f"dataset task {meta['task']!r} does not match the {what}'s task {ref['task']!r}")
+    if prev is not None and prev["dataset"]["sha256"] != fingerprint:
+        raise SdpError(f"cannot resume: {data} is not the dataset {ck_path} was trained on")
+
+    torch.manual_seed(cfg.seed)
+    norm = None
+    if init_ck is not None or prev is not None:
+        from sdp_cli.policy.checkpoint import net_from_checkpoint
+        norm = net_from_checkpoint(prev or init_ck).normalizer
+    net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev)
+    n_samples = next(iter(tensors.values())).shape[0]
+    steps_per_epoch = math.ceil(E / cfg.batch_size)
+    total = cfg.epochs * steps_per_epoch
+    warmup = cfg.warmup_steps if cfg.warmup_steps is not None else min(500, total // 10)
+
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed)
+    if init_ck is not None:
+        net.load_state_dict(init_ck["ema_model"] or init_ck["model"])
+    ema = EMAModel(net.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
+                   power=cfg.ema_power)
+    if init_ck is not None:
+        net.load_state_dict(init_ck["model"])
+    step, wall0, rows = 0, 0.0, []
+    if prev is not None:
+        net.load_state_dict(prev["model"])
+        ts = prev["train_state"]
+        opt.load_state_dict(ts["optimizer"])
+        sched.load_state_dict(ts["lr_scheduler"])
+        ema.load_state_dict(ts["ema"])
+        gen.set_state(ts["generator"].cpu())
+        step, wall0 = int(prev["step"]), float(ts["wall_time"])
+        rows = _read_metrics(out / "metrics.csv", step)
+
+    scheduler = None
+    if cfg.is_diffusion:
+        from sdp_cli.policy.diffusion import make_scheduler
+        scheduler = make_scheduler(cfg)
+    loss_fn = make_loss(cfg, scheduler)
+    out.mkdir(parents=True, exist_ok=True)
+    base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
+            "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
+            "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),
+                        "T": int(task.T)},
+            "init": str(init) if init is not None else (prev or {}).get("init"),
+            "steps_per_epoch": steps_per_epoch, "total_steps": total}
+
+    def checkpoint(path: Path, with_state: bool = True):
+        ema.store(net.parameters())
+        ema.copy_to(net.parameters())
+        ema_sd = {k: v.detach().clone().cpu() for k, v in net.state_dict().items()}
+        ema.restore(net.parameters())
+        payload = {**base, "epoch": step // steps_per_epoch, "step": step, "finished": step >= total,
+                   "model": {k: v.detach().cpu() for k, v in net.state_dict().items()}, "ema_model": ema_sd,
+                   "train_state": None}
+        if with_state:
+            payload["train_state"] = {"optimizer": opt.state_dict(), "lr_scheduler": sched.state_dict(),
+                                      "ema": ema.state_dict(), "generator": gen.get_state(),
+                                      "wall_time": wall0 + (time.perf_counter() - t0)}
+        save_checkpoint(path, payload)
+        atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
+
+    n_params = sum(p.numel() for p in net.parameters())
+    log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
+        f"{steps_per_epoch} step(s) of {cfg.batch_size}; {cfg.epochs} epochs = {total} steps; "
+        f"{n_params} parameters; device {dev}" + (f"; resuming at step {step}" if prev is not None else ""))
+    t0 = time.perf_counter()
+    last_ck = time.perf_counter()
+    net.train()
+    bar = _progress(progress)
+    try:
+        with bar:
+            task_id = bar.add_task(cfg.method, total=total, completed=step, info="")
+            while step < total:
+                idx = torch.randint(0, n_samples, (cfg.batch_size,), generator=gen, device=dev)
+                batch = {k: v[idx] for k, v in tensors.items()}
+                loss, parts = loss_fn(net, batch, gen)
+                if not torch.isfinite(loss):
+                    raise SdpError(f"training diverged at step {step} (loss {loss.item()}); "
+                                   f"try a lower --lr or --alpha-sobolev")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                ema.step(net.parameters())
+                step += 1
+                rows.append({"step": step, "epoch": step // steps_per_epoch, "loss": f"{loss.item():.6g}",
+                             "dp": f"{parts['dp'].item():.6g}", "sobolev": f"{parts['sobolev'].item():.6g}",
+                             "lr": f"{sched.get_last_lr()[0]:.6g}", "grad_norm": f"{float(gnorm):.4g}",
+                             "wall_time": f"{wall0 + time.perf_counter() - t0:.3f}"})
+                if step % 10 == 0 or step == total:
+                    bar.update(task_id, completed=step, info=f"loss {rows[-1]['loss']} dp {rows[-1]['dp']} "
+                                                             f"sob {rows[-1]['sobolev']} lr {rows[-1]['lr']}")
+                if step % steps_per_epoch == 0 and (step // steps_per_epoch) in cfg.save_at:
+                    checkpoint(out / f"epoch_{step // steps_per_epoch}.pt", with_state=False)
+                if step < total and time.perf_counter() - last_ck >= cfg.checkpoint_every_s:
+                    checkpoint(ck_path)
+                    last_ck = time.perf_counter()
+                if on_step is not None:
+                    on_step(step)
+    except KeyboardInterrupt:
+        checkpoint(ck_path)
+        raise
+    checkpoint(ck_path)
+    log(f"done: {step} steps, final loss {rows[-1]['loss'] if rows else 'n/a'}, "
+        f"{time.perf_counter() - t0:.1f} s; checkpoint {ck_path}")
+    return ck_path
+
+
+def _progress(enabled: bool):
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TimeRemainingColumn(), TextColumn("{task.fields[info]}"),
+                    console=Console(stderr=True), disable=not enabled or os.environ.get("SDP_NO_PROGRESS") == "1",
+                    transient=False)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: sdp train")
