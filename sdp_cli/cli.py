@@ -82,6 +82,49 @@ def collect_cmd(
                f"wall {stats.wall_time:.1f} s")
 
 
+@app.command("train")
+@clean_errors
+def train_cmd(
+    data: Annotated[Path, typer.Option(help="Dataset artifact from `sdp collect` or `sdp refine`.")],
+    method: Annotated[str, typer.Option(help="sdp, dp, pddp or pddp_s.")],
+    epochs: Annotated[int, typer.Option(help="Epochs: |D|(T-T_h)/T_h chunks (diffusion) or |D|T pairs (MLP).")],
+    out: Annotated[Path, typer.Option(help="Run folder: checkpoint.pt, epoch_<E>.pt, metrics.csv.")],
+    seed: Annotated[int, typer.Option(help="Seed of initialization, batches, noise and projections.")] = 0,
+    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")] = "auto",
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Batch size B.")] = 256,
+    lr: Annotated[float, typer.Option(help="Peak AdamW learning rate (cosine schedule with warm-up).")] = 1e-3,
+    horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h (diffusion methods).")] = 32,
+    diffusion_steps: Annotated[int, typer.Option("--diffusion-steps", help="DDPM steps K.")] = 5,
+    alpha_sobolev: Annotated[float, typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = 1.0,
+    n_proj: Annotated[int, typer.Option("--n-proj", help="Random projections per sample.")] = 1,
+    sobolev_mode: Annotated[str, typer.Option("--sobolev-mode", help="jvp: project on the state side (forward mode, default); vjp: eq. (6), project on the output side.")] = "jvp",
+    action: Annotated[Optional[str], typer.Option(help="Action variable u, x, q or v (default: the task's).")] = None,
+    save_at: Annotated[Optional[str], typer.Option("--save-at", help="Comma-separated epochs at which to keep a checkpoint, e.g. 1000,2000.")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out (after a kill).")] = False,
+    init: Annotated[Optional[Path], typer.Option(help="Start from this checkpoint (weights, EMA, normalizer).")] = None,
+    threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (batches are gathered in memory; no loader workers needed).")] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Train a policy on a dataset (Algorithm 1, lines 11-23)."""
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.train import train
+
+    try:
+        save = [int(s) for s in save_at.split(",") if s.strip()] if save_at else []
+    except ValueError:
+        raise SdpError(f"--save-at must be comma-separated integers, got {save_at!r}") from None
+    if threads is not None:
+        if threads <= 0:
+            raise SdpError(f"--threads must be > 0, got {threads}")
+        import torch
+        torch.set_num_threads(threads)
+    cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
+                      K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
+                      action=action, save_at=save)
+    path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
+    typer.echo(f"wrote {path}")
+
+
 def main() -> None:  # pragma: no cover - entry point
     app()
 
