@@ -20,6 +20,7 @@ tensors (:meth:`ChunkDataset.tensors`) from which training draws batches by inde
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -111,21 +112,26 @@ def _u_prev(U: np.ndarray) -> np.ndarray:
 
 def action_sequence(task: Task, X: np.ndarray, U: np.ndarray, action: str) -> np.ndarray:
     """``a_{t-1}`` for torque (rows u_{-1}=0, u_0, ..), ``g(x_t)`` for state control: (N, T+1, A)."""
-    return _u_prev(U) if action == "u" else task.state_action(X)
+    return _u_prev(U) if action == "u" else task_with_action(task, action).state_action(X)
 
 
 def fit_normalizer(task: Task, arrays: dict, action: str) -> Normalizer:
     """Fit the normalizer of a policy whose action is ``action`` ("u" for MLPs)."""
     X, U = arrays["X"], arrays["U"]
-    acts = U if action == "u" else task.state_action(X)
+    acts = U if action == "u" else task_with_action(task, action).state_action(X)
     obs = np.concatenate([task.observation(X), _u_prev(U)], axis=-1)
     return Normalizer.fit(acts, obs, arrays["xi"], x_tangent(task, X))
 
 
-def _with_action(task: Task, action: str) -> str:
+def task_with_action(task: Task, action: str | None) -> Task:
+    """``task`` itself, or a shallow copy whose ``action`` variable is ``action``."""
+    if action is None or action == task.action:
+        return task
     if action not in ("u", "x", "q", "v"):
         raise SdpError(f"action must be one of u, x, q, v; got {action!r}")
-    return action
+    other = copy.copy(task)
+    other.action = action
+    return other
 
 
 # ---------------------------------------------------------------- chunks
@@ -143,8 +149,9 @@ class ChunkDataset(Dataset):
             raise SdpError(f"only T_o = 1 is supported for now, got {T_o}")
         if T_h < T_o + 1 or T_h > task.T + 1:
             raise SdpError(f"T_h must be in [{T_o + 1}, {task.T + 1}] for this dataset, got {T_h}")
+        task = task_with_action(task, action)
         self.task, self.T_h, self.T_o = task, int(T_h), int(T_o)
-        self.action = _with_action(task, action or task.action)
+        self.action = task.action
         X, U = arrays["X"], arrays["U"]
         N, T = U.shape[:2]
         self.n_traj, self.T = N, T
@@ -173,7 +180,7 @@ class ChunkDataset(Dataset):
         S = T - T_h + 2
         starts = np.arange(S)
         ndx = task.ndx
-        G = None if action == "u" else task.state_action_jacobian(X)   # (N, T+1, A, ndx)
+        G = None if action == "u" else task_with_action(task, action).state_action_jacobian(X)  # (N,T+1,A,ndx)
         A_dim = task.nu if action == "u" else G.shape[-2]
         J = np.zeros((N, S, T_h, A_dim, ndx))
         P = np.broadcast_to(np.eye(ndx), (N, S, ndx, ndx)).copy()       # Phi_{t+r,t}, r = 0

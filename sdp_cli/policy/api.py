@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from sdp_cli.data.chunks import task_with_action
 from sdp_cli.policy.checkpoint import load_checkpoint, net_from_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.tasks import Task, get_task
@@ -22,13 +23,19 @@ class Policy:
         self.device = torch.device(device)
         self.config = TrainConfig.from_dict(ck["config"])
         self.method = self.config.method
-        self.task: Task = get_task(ck["task"], **(ck.get("task_options") or {}))
-        self.task_name = ck["task"]
         self.action = ck["action"]
+        self.task: Task = get_task(ck["task"], **(ck.get("task_options") or {}))
+        if self.is_diffusion_method(self.config):
+            self.task = task_with_action(self.task, self.action)
+        self.task_name = ck["task"]
         self.checkpoint_epoch = ck.get("epoch")
         self.net = net_from_checkpoint(ck, use_ema).to(self.device).eval()
         self.norm = self.net.normalizer
         self.is_diffusion = self.config.is_diffusion
+
+    @staticmethod
+    def is_diffusion_method(cfg: TrainConfig) -> bool:
+        return cfg.is_diffusion
 
     def _obs(self, x: np.ndarray, u_prev: np.ndarray) -> torch.Tensor:
         """Normalized ``o = (obs(x), u_prev)``: (B, nx), (B, nu) -> (B, n_o)."""
