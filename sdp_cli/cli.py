@@ -82,6 +82,81 @@ def collect_cmd(
                f"wall {stats.wall_time:.1f} s")
 
 
+@app.command("rollout")
+@clean_errors
+def rollout_cmd(
+    policy: Annotated[Path, typer.Option(help="Policy checkpoint (file or run folder) from `sdp train`.")],
+    out: Annotated[Path, typer.Option(help="Rollout artifact to write (.npz).")],
+    task: Annotated[Optional[str], typer.Option(help="Expected task (checked against the policy's).")] = None,
+    n: Annotated[int, typer.Option(help="Number of test instances.")] = 50,
+    seed: Annotated[int, typer.Option(help="Test seed: instances are disjoint from every training seed.")] = 0,
+    t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
+    k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
+    device: Annotated[str, typer.Option(help="cpu, cuda or auto.")] = "cpu",
+) -> None:
+    """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
+    from sdp_cli.rollout import RolloutConfig, rollout
+    from sdp_cli.train import resolve_device
+
+    path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
+                      task_name=task, device=str(resolve_device(device)))
+    typer.echo(f"wrote {path}: {s['method']} mean cost {s['mean_cost']:.3g} (median {s['median_cost']:.3g}), "
+               f"{s['reached']}/{s['n']} reached, {s['diverged']} diverged, {s['rollout_time']:.2f} s")
+
+
+@app.command("refine")
+@clean_errors
+def refine_cmd(
+    rollouts: Annotated[Path, typer.Option(help="Rollout artifact from `sdp rollout`.")],
+    out: Annotated[Path, typer.Option(help="Dataset artifact to write (.npz), same format as `sdp collect`.")],
+    max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
+    baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
+    workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
+) -> None:
+    """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
+    from sdp_cli.refine import refine
+
+    if workers is not None and workers <= 0:
+        raise SdpError(f"--workers must be > 0, got {workers}")
+    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, workers=workers)
+    typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins}; "
+               f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
+               f"mean solve {s.mean_pol_time:.3f} s vs {s.mean_base_time:.3f} s")
+
+
+@app.command("evaluate")
+@clean_errors
+def evaluate_cmd(
+    rollouts: Annotated[Path, typer.Option(help="Rollout artifact from `sdp rollout`.")],
+    out: Annotated[Path, typer.Option(help="CSV file to write (one row).")],
+    refined: Annotated[Optional[Path], typer.Option(help="Dataset from `sdp refine` of these rollouts.")] = None,
+) -> None:
+    """Summarize a run as one tidy CSV row (policy, refined and TO-alone metrics)."""
+    from sdp_cli.evaluate import evaluation_row, write_evaluation
+
+    row = evaluation_row(rollouts, refined)
+    write_evaluation([row], out)
+    typer.echo(f"wrote {out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                            for k, v in row.items() if k in (
+                                                "method", "policy_cost_mean", "refined_cost_mean",
+                                                "to_alone_cost_mean", "success_rate")))
+
+
+@app.command("plot-dataset")
+@clean_errors
+def plot_dataset_cmd(
+    path: Annotated[Path, typer.Argument(help="Dataset artifact (.npz) from `sdp collect` or `sdp refine`.")],
+    out: Annotated[Path, typer.Option(help="Image to write (.png, .pdf, .svg, .jpg).")],
+    max_traj: Annotated[int, typer.Option("--max-traj", help="Draw at most this many trajectories (the first ones).")] = 20,
+    dpi: Annotated[int, typer.Option(help="Resolution of raster images.")] = 120,
+) -> None:
+    """Draw a dataset's end-effector / quadrotor paths in 3D with start, goal and obstacles."""
+    from sdp_cli.report.plot_dataset import plot_dataset
+
+    written, n = plot_dataset(path, out, max_traj=max_traj, dpi=dpi)
+    typer.echo(f"wrote {written}: {n} trajectories")
+
+
 @app.command("train")
 @clean_errors
 def train_cmd(

@@ -1,0 +1,76 @@
+"""``sdp evaluate``: one tidy row per run from a rollout artifact and its refinement.
+
+Columns: method, task, n_traj, epochs, t_a, k_rollout, seed, n, mean/median policy cost,
+success rate (reached the goal without diverging), divergences, max constraint violation,
+mean refined cost (ArgminCost of policy-warm-started and naive TO), TO-alone cost (naive
+guess), convergence rates and mean TO iterations / solve time with and without the policy,
+rollout time. Written as CSV so that ``sdp report`` can aggregate across seeds.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
+from sdp_cli.errors import SdpError
+
+
+def _mean(a) -> float:
+    a = np.asarray(a, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
+def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
+                   extra: dict | None = None) -> dict:
+    """The summary of one run (a dict of scalars)."""
+    r, rmeta = load_npz(rollouts, kind="rollout")
+    pcfg = rmeta.get("policy_config", {}) or {}
+    cost = np.asarray(r["cost"], float)
+    row = {
+        "task": rmeta.get("task"), "method": rmeta.get("method"),
+        "n_traj": pcfg.get("n_traj"), "epochs": rmeta.get("policy_epoch"),
+        "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
+        "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
+        "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
+        "policy_cost_median": float(np.median(cost)),
+        "success_rate": float(np.mean(r["reached"])),
+        "diverged": int(np.sum(r["diverged"])),
+        "max_violation": float(np.max(np.where(np.isfinite(r["max_violation"]), r["max_violation"], np.inf))),
+        "rollout_time": float(r["rollout_time"]),
+        "rollout_time_per_instance": float(r["rollout_time"]) / len(cost),
+    }
+    if refined is not None:
+        d, dmeta = load_npz(refined, kind="dataset")
+        if "inst_winner" not in d:
+            raise SdpError(f"{refined} is not the output of `sdp refine` (no per-instance records)")
+        if len(d["inst_winner"]) != len(cost):
+            raise SdpError(f"{refined} refines {len(d['inst_winner'])} instances, {rollouts} has {len(cost)}")
+        pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)
+        best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
+                        np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))
+        row.update({
+            "refined_cost_mean": _mean(best),
+            "refined_converged_rate": float(np.mean(d["inst_winner"] >= 0)),
+            "policy_guess_converged_rate": float(np.mean(pol_ok)),
+            "policy_guess_cost_mean": _mean(np.where(pol_ok, d["inst_pol_cost"], np.nan)),
+            "policy_guess_iterations_mean": _mean(d["inst_pol_iterations"]),
+            "policy_guess_solve_time_mean": _mean(d["inst_pol_time"]),
+            "policy_wins": int(np.sum(d["inst_winner"] == 0)),
+            "to_alone_cost_mean": _mean(np.where(base_ok, d["inst_base_cost"], np.nan)),
+            "to_alone_converged_rate": float(np.mean(base_ok)) if np.any(d["inst_base_iterations"] >= 0) else float("nan"),
+            "to_alone_iterations_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_iterations"], np.nan)),
+            "to_alone_solve_time_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_time"], np.nan)),
+        })
+    row.update(extra or {})
+    return row
+
+
+def write_evaluation(rows: list[dict], out: str | os.PathLike) -> Path:
+    """Write rows as CSV atomically."""
+    df = pd.DataFrame(rows)
+    return atomic_write_bytes(out, lambda f: f.write(df.to_csv(index=False).encode()))

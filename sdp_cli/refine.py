@@ -1,0 +1,150 @@
+"""``sdp refine``: trajectory optimization warm-started by a policy (Algorithm 1, line 7).
+
+For every instance of a rollout artifact, the OCP is solved from the policy's (X, U)
+and, unless disabled, from the naive ``Interpolate`` guess; :func:`argmin_cost` keeps
+the converged candidate with the lowest cost. The output is a ``dataset`` artifact of
+the same format as ``sdp collect`` (the kept, converged trajectories with gains) plus
+per-instance records over *all* instances (``inst_*`` arrays, see docs/artifacts.md).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from sdp_cli.data.artifacts import load_npz, save_npz
+from sdp_cli.data.collect import RESULT_KEYS
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks import get_task
+
+#: winner codes stored in ``inst_winner``
+WIN_NONE, WIN_POLICY, WIN_BASELINE = -1, 0, 1
+
+
+def argmin_cost(candidates: Sequence) -> int | None:
+    """Index of the converged candidate with the lowest cost; None if none converged.
+
+    ``candidates`` are objects with ``converged`` and ``cost`` (e.g. ``SolveResult``);
+    ``None`` entries (candidates that were not computed) are skipped.
+    """
+    best, best_cost = None, np.inf
+    for i, c in enumerate(candidates):
+        if c is None or not bool(c.converged) or not np.isfinite(c.cost):
+            continue
+        if c.cost < best_cost:
+            best, best_cost = i, float(c.cost)
+    return best
+
+
+def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
+                    U_pol: np.ndarray, max_iter: int, baseline: bool) -> dict:
+    """Solve one instance from the policy guess (and the naive guess); picklable dict out."""
+    from sdp_cli.trajopt import get_solver
+
+    task = get_task(task_name, **task_options)
+    solver = get_solver(task, max_iter=max_iter)
+    finite = np.all(np.isfinite(X_pol)) and np.all(np.isfinite(U_pol))
+    # a diverged rollout is no guess: clip controls to the bounds and re-simulate if needed
+    if finite:
+        pol = solver.solve(xi, X_pol, np.clip(U_pol, task.u_lb, task.u_ub))
+    else:
+        pol = None
+    base = solver.solve(xi, *task.naive_guess(xi)) if baseline else None
+    win = argmin_cost([pol, base])
+    rec = {
+        "xi": xi,
+        "pol_cost": pol.cost if pol else np.nan, "pol_iterations": pol.iterations if pol else -1,
+        "pol_converged": bool(pol.converged) if pol else False, "pol_time": pol.solve_time if pol else 0.0,
+        "base_cost": base.cost if base else np.nan, "base_iterations": base.iterations if base else -1,
+        "base_converged": bool(base.converged) if base else False, "base_time": base.solve_time if base else 0.0,
+        "winner": WIN_NONE if win is None else (WIN_POLICY if win == 0 else WIN_BASELINE),
+    }
+    if win is not None:
+        res = (pol, base)[win]
+        rec.update({k: np.asarray(getattr(res, k)) for k in RESULT_KEYS})
+    return rec
+
+
+@dataclass
+class RefineStats:
+    n: int = 0
+    kept: int = 0
+    policy_wins: int = 0
+    mean_pol_iterations: float = float("nan")
+    mean_base_iterations: float = float("nan")
+    mean_pol_time: float = float("nan")
+    mean_base_time: float = float("nan")
+
+
+def _map(fn: Callable, argsets: list[tuple], workers: int, on_result: Callable[[int, dict], None]) -> None:
+    """Run ``fn(*args)`` for each argset on ``workers`` processes, calling back in completion order."""
+    if workers == 1 or len(argsets) <= 1:
+        for i, a in enumerate(argsets):
+            on_result(i, fn(*a))
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
+    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        futs = {pool.submit(fn, *a): i for i, a in enumerate(argsets)}
+        for f in as_completed(futs):
+            on_result(futs[f], f.result())
+
+
+def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
+           baseline: bool = True, workers: int | None = None,
+           progress: Callable[[int], None] | None = None) -> tuple[Path, RefineStats]:
+    """Refine every rollout of an artifact; write a dataset artifact to ``out``."""
+    arrays, meta = load_npz(rollouts, kind="rollout")
+    for k in ("X", "U", "xi"):
+        if k not in arrays:
+            raise SdpError(f"corrupt rollout artifact {rollouts}: missing {k}")
+    if max_iter <= 0:
+        raise SdpError(f"max_iter must be > 0, got {max_iter}")
+    task_name, task_options = meta["task"], meta.get("task_options", {})
+    task = get_task(task_name, **task_options)
+    n = len(arrays["xi"])
+    workers = max(1, min(workers or os.cpu_count() or 1, n))
+    from sdp_cli.trajopt import get_solver
+
+    get_solver(task, max_iter=max_iter)  # build once before forking workers
+    recs: list[dict | None] = [None] * n
+
+    def on_result(i: int, rec: dict) -> None:
+        recs[i] = rec
+        if progress:
+            progress(sum(r is not None for r in recs))
+
+    _map(refine_instance, [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i],
+                            max_iter, baseline) for i in range(n)], workers, on_result)
+    kept = [i for i in range(n) if recs[i]["winner"] != WIN_NONE]
+    out_arrays = {f"inst_{k}": np.array([r[k] for r in recs]) for k in
+                  ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost",
+                   "base_iterations", "base_converged", "base_time", "winner")}
+    out_arrays["inst_xi"] = arrays["xi"]
+    for k in RESULT_KEYS:
+        shape = np.asarray(recs[kept[0]][k]).shape if kept else ()
+        out_arrays[k] = np.stack([recs[i][k] for i in kept]) if kept else np.zeros((0, *shape))
+    out_arrays["xi"] = arrays["xi"][kept]
+    out_arrays["index"] = np.asarray(kept, dtype=int)
+    out_arrays["converged"] = np.ones(len(kept), dtype=bool)
+    w = out_arrays["inst_winner"]
+    stats = RefineStats(
+        n=n, kept=len(kept), policy_wins=int(np.sum(w == WIN_POLICY)),
+        mean_pol_iterations=float(np.mean(out_arrays["inst_pol_iterations"])),
+        mean_base_iterations=float(np.mean(out_arrays["inst_base_iterations"])) if baseline else float("nan"),
+        mean_pol_time=float(np.mean(out_arrays["inst_pol_time"])),
+        mean_base_time=float(np.mean(out_arrays["inst_base_time"])) if baseline else float("nan"))
+    dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
+            "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
+    path = save_npz(out, out_arrays, kind="dataset",
+                    config={"rollouts": str(rollouts), "max_iter": max_iter, "baseline": baseline,
+                            "workers": workers, "rollout_config": meta.get("config", {})},
+                    task=task_name, task_params=task.params(), task_options=task_options, dims=dims,
+                    source="refine", stats=stats.__dict__)
+    return path, stats

@@ -1,0 +1,166 @@
+"""``sdp rollout``: Algorithm 2, batched over test instances.
+
+All ``n`` instances advance together: one network call per denoising step for the whole
+batch (diffusion policies) or one per time step (MLP policies); the dynamics of the batch
+are stepped by the task's casadi step function mapped over instances (compiled casadi VM,
+identical to Pinocchio's semi-implicit Euler to ~1e-13, see tests/test_dynamics.py).
+
+Actions: torque policies (``action == "u"``) play ``tau_0[T_o : T_o + T_a]`` directly,
+saturated at the control bounds (the actuators cannot do more); state policies predict
+``g(x_{t+1}), ...`` and the controls come from the task's inverse dynamics (RNEA for arms,
+thrust allocation for the quadrotor), which needs only the predicted next velocity.
+
+Divergence (a NaN state, or a cost above ``DIVERGENCE_COST``) is recorded, not raised:
+the instance's remaining states are NaN and ``diverged`` is set.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from sdp_cli.data.artifacts import save_npz
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks import Task
+
+DIVERGENCE_COST = 1e5
+#: seed offset of the test set: test xi come from rng([TEST_SEED_BASE + seed, i]), disjoint
+#: from training collections that use small seeds rng([seed, i])
+TEST_SEED_BASE = 1_000_000
+
+
+@dataclass(frozen=True)
+class RolloutConfig:
+    n: int = 50
+    seed: int = 0
+    t_a: int | None = None  # default T_h - T_o
+    k_rollout: int | None = None  # default K
+
+    def validate(self, policy) -> "RolloutConfig":
+        if self.n <= 0:
+            raise SdpError(f"n must be > 0, got {self.n}")
+        if policy.is_diffusion:
+            t_a = self.t_a if self.t_a is not None else policy.T_h - policy.T_o
+            if not 1 <= t_a <= policy.T_h - policy.T_o:
+                raise SdpError(f"t_a must be in [1, T_h - T_o] = [1, {policy.T_h - policy.T_o}], got {t_a}")
+            k = self.k_rollout if self.k_rollout is not None else policy.K
+            if not 1 <= k <= policy.K:
+                raise SdpError(f"k_rollout must be in [1, K] = [1, {policy.K}], got {k}")
+            return RolloutConfig(self.n, self.seed, t_a, k)
+        return RolloutConfig(self.n, self.seed, 1, None)
+
+
+def test_xis(task: Task, n: int, seed: int) -> np.ndarray:
+    """The fixed evaluation set ``(n, n_xi)``: disjoint from any training seed < TEST_SEED_BASE."""
+    return np.stack([task.sample_xi(np.random.default_rng([TEST_SEED_BASE + int(seed), i])) for i in range(n)])
+
+
+def step_batch(task: Task, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """One dynamics step for a batch: ``X (B, nx)``, ``U (B, nu)`` -> ``(B, nx)``."""
+    if not hasattr(task, "_sdp_step_map") or task._sdp_step_map[0] != len(X):
+        task._sdp_step_map = (len(X), task.f_step.map(len(X)))
+    return task._sdp_step_map[1](X.T, U.T).full().T
+
+
+def controls_from_actions(task: Task, X: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Controls ``(B, nu)`` that realize the actions ``A (B, n_action)`` from states ``X (B, nx)``."""
+    if task.action == "u":
+        return np.clip(A, task.u_lb, task.u_ub)
+    # every state action ends with the next velocity; inverse dynamics needs only that part
+    X_next = np.concatenate([X[:, : task.nq], A[:, -task.nv:]], axis=1)
+    return task.inverse_dynamics(X, X_next)
+
+
+def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
+                   generator: torch.Generator | None = None,
+                   on_step: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+    """Algorithm 2 for a batch of instances ``xis (n, n_xi)``; returns arrays (see module doc)."""
+    task: Task = policy.task
+    n, T = len(xis), task.T
+    X = np.full((n, T + 1, task.nx), np.nan)
+    U = np.full((n, T, task.nu), np.nan)
+    X[:, 0] = np.stack([task.initial_state(xi) for xi in xis])
+    u_prev = np.zeros((n, task.nu))
+    alive = np.ones(n, dtype=bool)
+    t = 0
+    with np.errstate(all="ignore"):
+        while t < T and alive.any():
+            idx = np.flatnonzero(alive)
+            if policy.is_diffusion:
+                tau = policy.predict_chunk(xis[idx], X[idx, t], u_prev[idx], generator=generator,
+                                           k_rollout=config.k_rollout)
+                rows = [tau[:, policy.T_o + s] for s in range(config.t_a)]
+            else:
+                rows = [None]
+            for s, a in enumerate(rows):
+                if t + s >= T:
+                    break
+                x = X[idx, t + s]
+                if a is None:  # MLP: one control per state
+                    u = np.clip(policy.act(x, xis[idx]), task.u_lb, task.u_ub)
+                else:
+                    u = controls_from_actions(task, x, a)
+                x_next = step_batch(task, x, u)
+                bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > 1e8)
+                U[idx, t + s] = u
+                X[idx, t + s + 1] = np.where(bad[:, None], np.nan, x_next)
+                u_prev[idx] = u
+            t += len(rows)
+            alive &= np.all(np.isfinite(X[:, min(t, T)]), axis=1)
+            if on_step:
+                on_step(min(t, T))
+    return {"X": X, "U": U}
+
+
+def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray) -> dict[str, np.ndarray]:
+    """True cost, constraint violation, divergence and goal flags per instance."""
+    n = len(xis)
+    cost, viol, goal = np.full(n, np.inf), np.full(n, np.inf), np.full(n, np.inf)
+    for i in range(n):
+        if np.all(np.isfinite(X[i])) and np.all(np.isfinite(U[i])):
+            cost[i] = task.cost(X[i], U[i], xis[i])
+            viol[i] = task.constraint_violation(X[i], U[i], xis[i])
+            try:
+                goal[i] = task.goal_distance(X[i, -1], xis[i])
+            except NotImplementedError:
+                goal[i] = np.nan
+    diverged = ~np.isfinite(cost) | (cost > DIVERGENCE_COST)
+    return {"cost": cost, "max_violation": viol, "goal_distance": goal, "diverged": diverged,
+            "reached": (goal <= task.goal_tolerance) & ~diverged}
+
+
+def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: RolloutConfig,
+            task_name: str | None = None, device: str = "cpu",
+            on_step: Callable[[int], None] | None = None) -> tuple[Path, dict]:
+    """Load a policy, roll it out on the test set, write a ``rollout`` artifact."""
+    from sdp_cli.policy import load_policy
+
+    policy = load_policy(policy_path, device=device)
+    if task_name is not None and task_name != policy.task_name:
+        raise SdpError(f"policy {policy_path} was trained on task {policy.task_name!r}, not {task_name!r}")
+    config = config.validate(policy)
+    task = policy.task
+    xis = test_xis(task, config.n, config.seed)
+    gen = torch.Generator(device=policy.device).manual_seed(int(config.seed))
+    torch.manual_seed(int(config.seed))
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        traj = rollout_policy(policy, xis, config, generator=gen, on_step=on_step)
+    wall = time.perf_counter() - t0
+    ev = evaluate_rollouts(task, traj["X"], traj["U"], xis)
+    arrays = {**traj, **ev, "xi": xis, "rollout_time": np.asarray(wall)}
+    ck_cfg = policy.config.to_dict() if hasattr(policy.config, "to_dict") else {}
+    path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
+                    task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
+                    task_params=task.params(), method=policy.method, policy_config=ck_cfg,
+                    policy_epoch=policy.checkpoint_epoch)
+    summary = {"method": policy.method, "n": config.n, "mean_cost": float(np.mean(ev["cost"])),
+               "median_cost": float(np.median(ev["cost"])), "diverged": int(ev["diverged"].sum()),
+               "reached": int(ev["reached"].sum()), "rollout_time": wall}
+    return path, summary
