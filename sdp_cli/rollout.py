@@ -77,12 +77,25 @@ def controls_from_actions(task: Task, X: np.ndarray, A: np.ndarray) -> np.ndarra
     return task.inverse_dynamics(X, X_next)
 
 
+def instance_generators(seed: int, indices, device="cpu") -> list[torch.Generator]:
+    """One torch generator per instance, seeded by ``(seed, index)``: the rollout of an instance
+    does not depend on which other instances share its batch."""
+    return [torch.Generator(device=device).manual_seed(
+        int(np.random.SeedSequence([int(seed), int(i)]).generate_state(1, np.uint64)[0] >> 1)) for i in indices]
+
+
 def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
-                   generator: torch.Generator | None = None,
+                   generators: list[torch.Generator] | None = None,
                    on_step: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
-    """Algorithm 2 for a batch of instances ``xis (n, n_xi)``; returns arrays (see module doc)."""
+    """Algorithm 2 for a batch of instances ``xis (n, n_xi)``; returns ``X (n, T+1, nx)``, ``U (n, T, nu)``.
+
+    ``generators``: one per instance (see :func:`instance_generators`); default seeded by
+    ``(config.seed, i)``.
+    """
     task: Task = policy.task
     n, T = len(xis), task.T
+    if generators is None:
+        generators = instance_generators(config.seed, range(n), policy.device)
     X = np.full((n, T + 1, task.nx), np.nan)
     U = np.full((n, T, task.nu), np.nan)
     X[:, 0] = np.stack([task.initial_state(xi) for xi in xis])
@@ -93,7 +106,8 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
         while t < T and alive.any():
             idx = np.flatnonzero(alive)
             if policy.is_diffusion:
-                tau = policy.predict_chunk(xis[idx], X[idx, t], u_prev[idx], generator=generator,
+                tau = policy.predict_chunk(xis[idx], X[idx, t], u_prev[idx],
+                                           generator=[generators[i] for i in idx],
                                            k_rollout=config.k_rollout)
                 rows = [tau[:, policy.T_o + s] for s in range(config.t_a)]
             else:
@@ -147,11 +161,9 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     config = config.validate(policy)
     task = policy.task
     xis = test_xis(task, config.n, config.seed)
-    gen = torch.Generator(device=policy.device).manual_seed(int(config.seed))
-    torch.manual_seed(int(config.seed))
     t0 = time.perf_counter()
     with torch.no_grad():
-        traj = rollout_policy(policy, xis, config, generator=gen, on_step=on_step)
+        traj = rollout_policy(policy, xis, config, on_step=on_step)
     wall = time.perf_counter() - t0
     ev = evaluate_rollouts(task, traj["X"], traj["U"], xis)
     arrays = {**traj, **ev, "xi": xis, "rollout_time": np.asarray(wall)}

@@ -20,6 +20,7 @@ Sobolev term needs (values at ``delta = 0`` are the data).
 from __future__ import annotations
 
 import torch
+from diffusers.utils.torch_utils import randn_tensor
 from diffusers import DDPMScheduler
 from torch import nn
 
@@ -91,12 +92,13 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
 
 @torch.no_grad()
 def sample_chunk(net: DiffusionNet, scheduler: DDPMScheduler, xi_n, obs_n, a_hist_n, T_h: int,
-                 k_rollout: int | None = None, generator: torch.Generator | None = None):
+                 k_rollout: int | None = None, generator: torch.Generator | list | None = None):
     """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``(B, T_h, A)`` with inpainted history."""
     cfg = net.cfg
     B, T_o, A = a_hist_n.shape
     scheduler.set_timesteps(k_rollout or cfg.K, device=a_hist_n.device)
-    tau = torch.randn((B, T_h, A), generator=generator, device=a_hist_n.device)
+    # a list of generators (one per instance) makes batched and one-by-one sampling identical
+    tau = randn_tensor((B, T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
     for t in scheduler.timesteps:
         tau[:, :T_o] = a_hist_n
         kk = torch.full((B,), int(t), device=tau.device, dtype=torch.long)
