@@ -138,6 +138,7 @@ class QuadrotorTask(Task):
         self.mass = float(sum(I.mass for I in self.model.inertias))
         self.u_hover = np.full(4, self.mass * -self.model.gravity.linear[2] / 4)
         self.q_ref = pin.neutral(self.model)
+        self.r_quad, self.z_bounds = R_QUAD, (Z_FLOOR, Z_CEIL)
 
     def params(self) -> dict:
         return {**super().params(), "n_obstacles": self.n_obstacles, "columns": self.columns.tolist(),
@@ -181,6 +182,14 @@ class QuadrotorTask(Task):
     def target(self, xi: np.ndarray) -> np.ndarray:
         """Goal position (3,)."""
         return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
+
+    def path_points(self, X: np.ndarray) -> np.ndarray:
+        """Base positions along a trajectory: (T+1, 13) -> (T+1, 3)."""
+        return np.asarray(X, dtype=float)[:, :3].copy()
+
+    def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
+        """Base distance to the goal (m)."""
+        return float(np.linalg.norm(np.asarray(x, dtype=float)[:3] - self.target(xi)))
 
     def naive_guess(self, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x0 = self.initial_state(xi)

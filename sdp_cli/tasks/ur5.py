@@ -119,6 +119,17 @@ class Ur5Task(Task):
     def target(self, xi: np.ndarray) -> np.ndarray:
         return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
 
+    def path_points(self, X: np.ndarray) -> np.ndarray:
+        """tool0 positions along a trajectory: (T+1, 12) -> (T+1, 3)."""
+        return np.array([self.ee_position_np(x[: self.nq]) for x in np.asarray(X, dtype=float)])
+
+    #: where ``sdp plot-dataset`` draws the robot base
+    base_marker = (0.0, 0.0, 0.0)
+
+    def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
+        """tool0 distance to the target (m)."""
+        return float(np.linalg.norm(self.ee_position_np(np.asarray(x)[: self.nq]) - self.target(xi)))
+
     # --------------------------------------------------------------- naive guess
     def inverse_kinematics(self, q0: np.ndarray, target: np.ndarray, iters: int = 200,
                            damping: float = 1e-3, tol: float = 1e-4) -> np.ndarray:
