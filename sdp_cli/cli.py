@@ -66,14 +66,20 @@ def collect_cmd(
     workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap; non-converged solves are rejected.")] = 1000,
     max_attempts: Annotated[Optional[int], typer.Option("--max-attempts", help="Cap on solves tried (default 20 x n_traj).")] = None,
+    policy: Annotated[Optional[Path], typer.Option(help="Warm-start TO with this policy's rollouts and keep the better of policy-guess and naive-guess solves (Algorithm 1, lines 3-8).")] = None,
+    t_a: Annotated[Optional[int], typer.Option("--t-a", help="With --policy: actions played per prediction.")] = None,
+    k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
 ) -> None:
-    """Solve OCPs from the naive guess and write a dataset with feedback gains."""
-    from sdp_cli.data.collect import CollectConfig, collect
+    """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
+    from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.progress import collect_progress
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
-    config = CollectConfig(task=task, n_traj=n_traj, seed=seed, max_iter=max_iter, max_attempts=max_attempts)
+    config = CollectConfig(task=task, n_traj=n_traj, seed=seed, max_iter=max_iter, max_attempts=max_attempts,
+                           policy=str(policy) if policy else None,
+                           policy_fingerprint=policy_fingerprint(policy) if policy else None,
+                           t_a=t_a, k_rollout=k_rollout)
     out = out or Path("data") / f"{task}-n{n_traj}-s{seed}.npz"
     with collect_progress(n_traj) as on_update:
         path, stats = collect(config, out, workers=workers, progress=on_update)

@@ -63,9 +63,11 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
         "base_converged": bool(base.converged) if base else False, "base_time": base.solve_time if base else 0.0,
         "winner": WIN_NONE if win is None else (WIN_POLICY if win == 0 else WIN_BASELINE),
     }
-    if win is not None:
-        res = (pol, base)[win]
+    # the kept candidate, or (for the record) whichever was computed; never kept unless converged
+    res = (pol, base)[win] if win is not None else (pol if pol is not None else base)
+    if res is not None:
         rec.update({k: np.asarray(getattr(res, k)) for k in RESULT_KEYS})
+    rec["converged"] = np.asarray(win is not None)
     return rec
 
 

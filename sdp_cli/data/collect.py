@@ -43,6 +43,11 @@ class CollectConfig:
     max_iter: int = 1000
     max_attempts: int | None = None  # default: 20 * n_traj
     task_options: dict = field(default_factory=dict)
+    #: Algorithm 1 lines 3-8: warm-start TO with this policy's rollout, keep ArgminCost
+    policy: str | None = None
+    policy_fingerprint: str | None = None
+    t_a: int | None = None
+    k_rollout: int | None = None
 
     def __post_init__(self):
         if self.n_traj <= 0:
@@ -58,8 +63,11 @@ class CollectConfig:
 
     def identity(self) -> dict:
         """The part of the config that partial results must agree on (not the caps)."""
-        return {"task": self.task, "seed": self.seed, "max_iter": self.max_iter,
-                "task_options": dict(sorted(self.task_options.items()))}
+        ident = {"task": self.task, "seed": self.seed, "max_iter": self.max_iter,
+                 "task_options": dict(sorted(self.task_options.items()))}
+        if self.policy is not None:
+            ident.update(policy=self.policy_fingerprint, t_a=self.t_a, k_rollout=self.k_rollout)
+        return ident
 
 
 def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
@@ -81,6 +89,60 @@ def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_i
     out["index"] = np.asarray(index)
     out["status"] = np.asarray(str(res.status))
     return out
+
+
+class _Jobs:
+    """Turns sample indices into solver jobs ``(fn, args)``: naive guess, or policy guess."""
+
+    def __init__(self, config: CollectConfig, task: Task):
+        self.config, self.task = config, task
+        self.policy = None
+        if config.policy is not None:
+            from sdp_cli.policy import load_policy
+            from sdp_cli.rollout import RolloutConfig
+
+            self.policy = load_policy(config.policy, device="cpu")
+            if self.policy.task_name != config.task:
+                raise SdpError(f"policy {config.policy} was trained on task {self.policy.task_name!r}, "
+                               f"not {config.task!r}")
+            self.rcfg = RolloutConfig(n=1, seed=config.seed, t_a=config.t_a,
+                                      k_rollout=config.k_rollout).validate(self.policy)
+
+    def make(self, indices: list[int]) -> list[tuple[Callable, tuple]]:
+        c = self.config
+        if self.policy is None:
+            return [(solve_index, (c.task, c.task_options, c.seed, i, c.max_iter)) for i in indices]
+        import torch
+
+        from sdp_cli.refine import refine_instance
+        from sdp_cli.rollout import instance_generators, rollout_policy
+
+        xis = np.stack([sample_xi(self.task, c.seed, i) for i in indices])
+        with torch.no_grad():
+            traj = rollout_policy(self.policy, xis, self.rcfg,
+                                  generators=instance_generators(c.seed, indices))
+        return [(_refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter))
+                for k, i in enumerate(indices)]
+
+
+def _refine_index(task_name, task_options, index, xi, X_pol, U_pol, max_iter) -> dict:
+    from sdp_cli.refine import refine_instance
+
+    rec = refine_instance(task_name, task_options, xi, X_pol, U_pol, max_iter, baseline=True)
+    rec["index"] = np.asarray(index)
+    return {k: np.asarray(v) for k, v in rec.items()}
+
+
+def policy_fingerprint(path: str | os.PathLike) -> str:
+    """Content hash of a checkpoint (a run folder means its ``checkpoint.pt``)."""
+    import hashlib
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / "checkpoint.pt"
+    if not p.is_file():
+        raise SdpError(f"policy checkpoint not found: {path}")
+    return hashlib.sha256(p.read_bytes()).hexdigest()[:16]
 
 
 # ----------------------------------------------------------------- partial store
@@ -201,15 +263,16 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
             progress(stats)
 
     update()
-    args = (config.task, config.task_options, config.seed)
+    jobs = _Jobs(config, task)
     cap = config.attempts_cap
     if kept_indices(done, config.n_traj) is None:
         if workers == 1:
             while kept_indices(done, config.n_traj) is None:
-                todo = next(_next_indices(done, set(), config.n_traj, cap), None)
-                if todo is None:
+                todo = list(_next_indices(done, set(), config.n_traj, cap))
+                if not todo:
                     break
-                update(solve_index(*args, todo, config.max_iter))
+                for fn, a in jobs.make(todo[: max(1, config.n_traj)]):
+                    update(fn(*a))
         else:
             from sdp_cli.trajopt import get_solver
 
@@ -219,10 +282,11 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
                 inflight: dict[Future, int] = {}
                 try:
                     while kept_indices(done, config.n_traj) is None:
-                        for i in _next_indices(done, set(inflight.values()), config.n_traj, cap):
-                            if len(inflight) >= 2 * workers:
-                                break
-                            inflight[pool.submit(solve_index, *args, i, config.max_iter)] = i
+                        room = 2 * workers - len(inflight)
+                        todo = [i for _, i in zip(range(max(room, 0)),
+                                                  _next_indices(done, set(inflight.values()), config.n_traj, cap))]
+                        for (fn, a), i in zip(jobs.make(todo) if todo else [], todo):
+                            inflight[pool.submit(fn, *a)] = i
                         if not inflight:
                             break
                         finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
@@ -239,7 +303,8 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
         raise SdpError(f"only {n_conv} of {config.n_traj} solves converged after {len(done)} attempts "
                        f"(cap {cap}); raise --max-attempts or --max-iter (finished solves are kept "
                        f"in {store.dir})")
-    arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index")}
+    extra = ("winner", "pol_cost", "pol_iterations", "base_cost", "base_iterations") if config.policy else ()
+    arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index") + extra}
     arrays["converged"] = arrays["converged"].astype(bool)
     dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
             "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
