@@ -33,7 +33,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
     cost = np.asarray(r["cost"], float)
     row = {
         "task": rmeta.get("task"), "method": rmeta.get("method"),
-        "n_traj": pcfg.get("n_traj"), "epochs": rmeta.get("policy_epoch"),
+        "n_traj": (rmeta.get("policy_dataset") or {}).get("n_traj"), "epochs": rmeta.get("policy_epoch"),
         "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
         "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),

@@ -171,7 +171,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
                     task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
-                    policy_epoch=policy.checkpoint_epoch)
+                    policy_epoch=policy.checkpoint_epoch, policy_dataset=policy.dataset_info)
     summary = {"method": policy.method, "n": config.n, "mean_cost": float(np.mean(ev["cost"])),
                "median_cost": float(np.median(ev["cost"])), "diverged": int(ev["diverged"].sum()),
                "reached": int(ev["reached"].sum()), "rollout_time": wall}

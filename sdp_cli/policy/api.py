@@ -29,6 +29,7 @@ class Policy:
             self.task = task_with_action(self.task, self.action)
         self.task_name = ck["task"]
         self.checkpoint_epoch = ck.get("epoch")
+        self.dataset_info = dict(ck.get("dataset") or {})   # path, sha256, n_traj, T of the training data
         self.net = net_from_checkpoint(ck, use_ema).to(self.device).eval()
         self.norm = self.net.normalizer
         self.is_diffusion = self.config.is_diffusion
