@@ -11,13 +11,12 @@ Linearization (per stage ``t``, around the solution ``x_t, u_t``)
     revolute joints; for a quaternion it maps the ambient 4-vector to the 3-vector).
 
 Second-order terms: the Hessian of the stage LAGRANGIAN, not of the cost alone
-    ``L_t(dx, du) = l(x_t (+) dx, u_t + du; xi) + lam_t^T (x_t (+) dx)
-    - lam_{t+1}^T f(x_t (+) dx, u_t + du) + mu_t^T h(x_t (+) dx; xi)``,
+    ``L_t(x, u) = l(x, u; xi) - lam_{t+1}^T f(x, u) + mu_t^T h(x; xi)``
     with casadi's sign convention (casadi's Lagrangian is ``f + lam_g^T g`` and the gap
     constraints are ``g_t = x_{t+1} - f(x_t, u_t)``, so ``lam_{t+1}`` enters with a minus
-    in front of ``f``). ``H_t = d^2 L_t / d(dx, du)^2 |_0``; the terminal stage has
-    ``L_T = l_T + lam_T^T (x_T (+) dx) + mu_T^T h``. The term ``lam_t^T (x (+) dx)``
-    is the curvature of the chart (zero for revolute joints).
+    in front of ``f``), ``L_T = l_T + mu_T^T h``; these are the diagonal blocks of the
+    NLP's Hessian, reused from the compiled library. In the tangent space
+    ``H_t = blkdiag(J_+, I)^T d^2 L_t blkdiag(J_+, I)`` (exact at a KKT point).
 
 Recursion (t = T-1 .. 0), value Hessian ``P_T = H_T``:
     ``Q_xx = H_xx + A^T P A``, ``Q_ux = H_ux + B^T P A``, ``Q_uu = H_uu + B^T P B``.
@@ -25,7 +24,8 @@ Recursion (t = T-1 .. 0), value Hessian ``P_T = H_T``:
     zero; the free ones get ``K_f = -Q_ff^-1 Q_fx``. The value Hessian is updated with
     the closed loop, ``P = Q_xx + K^T Q_ux + Q_ux^T K + K^T Q_uu K``.
 
-Active state constraints ``h_i(x_s) <= 0`` (with a positive multiplier) are treated as
+Active state constraints ``h_i(x_s) <= 0`` (multiplier larger than the slack ``-h_i``, the
+same interior-point criterion as for the control bounds, see :func:`active_controls`) are treated as
 equalities of the linearized problem: ``C_s dx_s = 0``, ``C_s = dh/dx J_+``. At stage
 ``t`` the rows ``C_{t+1}`` become ``C_{t+1} (A dx + B du) = 0``: the part that the free
 controls can satisfy (row space of ``C_{t+1} B_f``, from an SVD) is imposed on ``du``
@@ -42,41 +42,70 @@ import numpy as np
 
 #: a control is clamped when it lies within this distance (relative to max(1, |bound|))
 BOUND_ACTIVE_TOL = 1e-6
-#: a state constraint is active when h > -tol and its multiplier > tol
-STATE_ACTIVE_TOL = 1e-6
 
 
-def stage_derivative_functions(task) -> dict[str, ca.Function]:
-    """Casadi functions giving the linearization of one stage (SX, not mapped).
-
-    - ``lin_stage(x, u, xi, lam_cur, lam_next, mu) -> (Fx (nx, ndx), Fu (nx, nu), H (ndx+nu, ndx+nu))``
-    - ``lin_term(x, xi, lam_cur, mu) -> H_T (ndx, ndx)``
-    - ``chart(x) -> (J_+ (nx, ndx), dh (n_h, ndx))``: tangent basis and constraint Jacobian
-    """
-    nx, ndx, nu, n_h = task.nx, task.ndx, task.nu, task.n_h
-    x, u, xi = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("xi", task.n_xi)
-    lam_cur, lam_next, mu = ca.SX.sym("lam_cur", nx), ca.SX.sym("lam_next", nx), ca.SX.sym("mu", n_h)
-    dx, du = ca.SX.sym("dx", ndx), ca.SX.sym("du", nu)
+def chart_function(task) -> ca.Function:
+    """``chart(x, xi) -> (J_+ (nx, ndx), dh (n_h, ndx))``: the tangent basis
+    ``d (x (+) dx)/d dx |_0`` and the state-constraint Jacobian in the tangent space."""
+    x, xi, dx = ca.SX.sym("x", task.nx), ca.SX.sym("xi", task.n_xi), ca.SX.sym("dx", task.ndx)
     xx = task.f_integrate(x, dx)
-    uu = u + du
-    fx = task.f_step(xx, uu)
     h = task.f_state_constraints(xx, xi)
-    lag = task.f_running_cost(xx, uu, xi) + ca.dot(lam_cur, xx) - ca.dot(lam_next, fx)
-    if n_h:
-        lag = lag + ca.dot(mu, h)
-    z = ca.vertcat(dx, du)
-    zero = ca.DM.zeros(ndx + nu)
-    Fx, Fu, H = ca.substitute([ca.jacobian(fx, dx), ca.jacobian(fx, du), ca.hessian(lag, z)[0]], [z], [zero])
-    lin_stage = ca.Function("lin_stage", [x, u, xi, lam_cur, lam_next, mu], [Fx, Fu, H],
-                            ["x", "u", "xi", "lam_cur", "lam_next", "mu"], ["Fx", "Fu", "H"])
-    lag_T = task.f_terminal_cost(xx, xi) + ca.dot(lam_cur, xx)
-    if n_h:
-        lag_T = lag_T + ca.dot(mu, h)
-    HT = ca.substitute(ca.hessian(lag_T, dx)[0], dx, ca.DM.zeros(ndx))
-    lin_term = ca.Function("lin_term", [x, xi, lam_cur, mu], [HT], ["x", "xi", "lam_cur", "mu"], ["H"])
-    Jp, dh = ca.substitute([ca.jacobian(xx, dx), ca.jacobian(h, dx)], [dx], [ca.DM.zeros(ndx)])
-    chart = ca.Function("chart", [x, xi], [Jp, dh], ["x", "xi"], ["Jplus", "dh"])
-    return {"lin_stage": lin_stage, "lin_term": lin_term, "chart": chart}
+    Jp, dh = ca.substitute([ca.jacobian(xx, dx), ca.jacobian(h, dx)], [dx], [ca.DM.zeros(task.ndx)])
+    return ca.Function("sdp_chart", [x, xi], [Jp, dh], ["x", "xi"], ["Jplus", "dh"])
+
+
+def linearize(funcs: dict[str, ca.Function], task, X, U, xi, lam_gap, mu_h):
+    """Tangent-space linearization along a solution.
+
+    Shapes: X (T+1, nx), U (T, nu), xi (n_xi,), lam_gap (T, nx) multipliers of
+    ``x_{t+1} - f(x_t, u_t)``, mu_h (T, n_h) of ``h(x_1..x_T)``. ``funcs``: the mapped
+    ambient stage blocks of :func:`sdp_cli.trajopt.ocp.stage_blocks` (``jac_f_map``,
+    ``hess_stage_map``, ``hess_term``) and ``chart_map`` (T+1 columns).
+
+    The ambient Lagrangian Hessian (without the linear terms ``lam_t^T x_t``) is pulled
+    back to the tangent space as ``J_+^T H J_+``: exact at a KKT point, where the stage
+    gradient that multiplies the chart's curvature vanishes. For revolute joints
+    ``J_+ = I`` and nothing changes.
+    Returns A (T, ndx, ndx), B (T, ndx, nu), H (T, ndx+nu, ndx+nu), HT (ndx, ndx),
+    dh (T+1, n_h, ndx).
+    """
+    T, nx, ndx, nu, n_h = len(U), task.nx, task.ndx, task.nu, task.n_h
+    s = nx + nu
+    xis = np.repeat(xi[:, None], T + 1, 1)
+    mu = np.vstack([np.zeros((1, n_h)), mu_h[:-1]])  # no state constraint on x_0
+    Fx, Fu = funcs["jac_f_map"](X[:-1].T, U.T)
+    Fx, Fu = _stack(ca.densify(Fx), T, nx, nx), _stack(ca.densify(Fu), T, nx, nu)
+    H = _stack(ca.densify(funcs["hess_stage_map"](X[:-1].T, U.T, xis[:, :T], lam_gap.T, np.ones((1, T)), mu.T)),
+               T, s, s)
+    HT = np.asarray(ca.densify(funcs["hess_term"](X[-1], xi, 1.0, mu_h[-1])))
+    Jp, dh = funcs["chart_map"](X.T, xis)
+    Jp, dh = _stack(ca.densify(Jp), T + 1, nx, ndx), _stack(ca.densify(dh), T + 1, n_h, ndx)
+    if nx == ndx and np.array_equal(Jp, np.broadcast_to(np.eye(nx), Jp.shape)):
+        return Fx, Fu, H, HT, dh
+    Jm = np.linalg.pinv(Jp[1:])  # (T, ndx, nx) left inverses at x_{t+1}
+    A, B = Jm @ Fx @ Jp[:-1], Jm @ Fu
+    Z = np.zeros((T, s, ndx + nu))
+    Z[:, :nx, :ndx] = Jp[:-1]
+    Z[:, nx:, ndx:] = np.eye(nu)
+    return A, B, Z.transpose(0, 2, 1) @ H @ Z, Jp[-1].T @ HT @ Jp[-1], dh
+
+
+def active_controls(U, u_lb, u_ub, lam_u=None) -> np.ndarray:
+    """Clamped-control mask (T, nu).
+
+    With the bound multipliers ``lam_u`` (casadi's ``lam_x``: > 0 at an upper bound, < 0
+    at a lower one) a bound counts as active when its multiplier exceeds its slack: an
+    interior-point solution has ``z s ~ mu``, so active bounds have ``z >> s`` and inactive
+    ones ``z << s`` whatever the final ``mu`` (a fixed distance threshold misclassifies
+    controls that approach their bound as ``mu / z`` at loose tolerances). Without
+    multipliers: within ``BOUND_ACTIVE_TOL`` of the bound (relative to ``max(1, |bound|)``).
+    """
+    if lam_u is None:
+        tol_ub = BOUND_ACTIVE_TOL * np.maximum(1.0, np.abs(u_ub))
+        tol_lb = BOUND_ACTIVE_TOL * np.maximum(1.0, np.abs(u_lb))
+        return (U >= u_ub - tol_ub) | (U <= u_lb + tol_lb)
+    s_ub, s_lb = u_ub - U, U - u_lb
+    return ((lam_u > 0) & (lam_u > s_ub)) | ((lam_u < 0) & (-lam_u > s_lb))
 
 
 def riccati_function(ndx: int, nu: int, T: int) -> ca.Function:
@@ -118,42 +147,6 @@ def riccati_gains_fast(fun: ca.Function, A, B, H, HT, clamped) -> np.ndarray:
 def _stack(M, n: int, rows: int, cols: int) -> np.ndarray:
     """casadi horizontally-stacked ``(rows, n*cols)`` -> ``(n, rows, cols)``."""
     return np.asarray(M).reshape(rows, n, cols).transpose(1, 0, 2)
-
-
-def linearize(funcs: dict[str, ca.Function], task, X, U, xi, lam_gap, lam_init, mu_h):
-    """Tangent-space linearization along a solution.
-
-    Shapes: X (T+1, nx), U (T, nu), xi (n_xi,), lam_gap (T, nx) multipliers of
-    ``x_{t+1} - f(x_t, u_t)``, lam_init (nx,) of ``x_0 - x0_hat``, mu_h (T, n_h) of
-    ``h(x_1..x_T)``. ``funcs`` holds mapped versions ``lin_stage_map``,
-    ``lin_term``, ``chart_map`` (T+1 columns).
-    Returns A (T, ndx, ndx), B (T, ndx, nu), H (T, ndx+nu, ndx+nu), HT (ndx, ndx),
-    dh (T+1, n_h, ndx).
-    """
-    T, nx, ndx, nu, n_h = len(U), task.nx, task.ndx, task.nu, task.n_h
-    lam_cur = np.vstack([lam_init[None], lam_gap[:-1]])  # multiplier attached to x_t, t < T
-    mu = np.vstack([np.zeros((1, n_h)), mu_h[:-1]])  # no state constraint on x_0
-    xis = np.repeat(xi[:, None], T, 1)
-    Fx, Fu, H = funcs["lin_stage_map"](X[:-1].T, U.T, xis, lam_cur.T, lam_gap.T, mu.T)
-    Fx, Fu, H = _stack(Fx, T, nx, ndx), _stack(Fu, T, nx, nu), _stack(H, T, ndx + nu, ndx + nu)
-    HT = np.asarray(funcs["lin_term"](X[-1], xi, lam_gap[-1], mu_h[-1]))
-    Jp, dh = funcs["chart_map"](X.T, np.repeat(xi[:, None], T + 1, 1))
-    Jp, dh = _stack(Jp, T + 1, nx, ndx), _stack(dh, T + 1, n_h, ndx)
-    if nx == ndx and np.allclose(Jp, np.eye(nx), rtol=0, atol=1e-14):
-        A, B = Fx, Fu
-    else:
-        Jm = np.linalg.pinv(Jp[1:])  # (T, ndx, nx) left inverses at x_{t+1}
-        A, B = Jm @ Fx, Jm @ Fu
-    return A, B, H, HT, dh
-
-
-def active_controls(U, u_lb, u_ub) -> np.ndarray:
-    """Clamped-control mask (T, nu): controls at a bound, within ``BOUND_ACTIVE_TOL``
-    relative to ``max(1, |bound|)`` (interior-point solutions approach active bounds to
-    about ``mu / multiplier``)."""
-    tol_ub = BOUND_ACTIVE_TOL * np.maximum(1.0, np.abs(u_ub))
-    tol_lb = BOUND_ACTIVE_TOL * np.maximum(1.0, np.abs(u_lb))
-    return (U >= u_ub - tol_ub) | (U <= u_lb + tol_lb)
 
 
 def _constrained_gain(Qff, Qfx, E, F):

@@ -22,7 +22,7 @@ import numpy as np
 from sdp_cli.errors import SdpError
 from sdp_cli.trajopt import gains as _gains
 from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
-from sdp_cli.trajopt.ocp import Layout, build_nlp
+from sdp_cli.trajopt.ocp import Layout, build_nlp, nlp_functions, stage_blocks
 
 SOLVERS = ("fatrop", "ipopt")
 DEFAULT_SOLVER = "fatrop"
@@ -51,6 +51,7 @@ class SolveResult:
     B: np.ndarray  # (T, ndx, nu) df/du
     Phi: np.ndarray  # (T, ndx, ndx) A + B K
     clamped: np.ndarray = field(default=None)  # (T, nu) bool, controls at a bound
+    active_h: np.ndarray = field(default=None)  # (T, n_h) bool, active h(x_1..x_T) <= 0
     gain_time: float = 0.0  # seconds spent linearizing + Riccati
     solver: str = ""
     x0: np.ndarray = field(default=None)  # (nx,)
@@ -87,18 +88,16 @@ class TrajOptSolver:
         self.max_iter, self.tol, self.viol_tol = int(max_iter), float(tol), float(viol_tol)
         nlp, self.layout = build_nlp(task, self.T)
         opts = _plugin_options(solver, self.layout, self.max_iter, self.tol)
-        stage = _gains.stage_derivative_functions(task)
-        gfun = {"lin_stage_map": stage["lin_stage"].map(self.T),
-                "lin_term": stage["lin_term"],
-                "chart_map": stage["chart"].map(self.T + 1),
+        blocks = stage_blocks(task)
+        jac_f, hess_stage, hess_term, _ = blocks
+        gfun = {"jac_f_map": jac_f.map(self.T), "hess_stage_map": hess_stage.map(self.T),
+                "hess_term": hess_term, "chart_map": _gains.chart_function(task).map(self.T + 1),
                 "riccati": _gains.riccati_function(task.ndx, task.nu, self.T)}
-        tag = f"sdp_{task.name}_T{self.T}_{solver}"
+        tag = "sdp_" + "".join(c if c.isalnum() else "_" for c in task.name).strip("_").replace("__", "_") \
+            + f"_T{self.T}_{solver}"
         lib = None
         if jit:
-            proto = ca.nlpsol(tag, solver, nlp, opts)
-            oracle = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]], ["x", "p"], ["f", "g"])
-            funcs = [oracle] + [proto.get_function(n) for n in proto.get_function()]
-            lib = compile_functions(tag, funcs + list(gfun.values()))
+            lib = compile_functions(tag, nlp_functions(task, nlp, self.layout, solver, blocks) + list(gfun.values()))
         if lib is not None:
             self._nlpsol = ca.nlpsol(tag, solver, lib, opts)
             self._gfun = {k: ca.external(f.name(), lib) for k, f in gfun.items()}
@@ -176,9 +175,12 @@ class TrajOptSolver:
         res = SolveResult(X=X, U=U, cost=float(r["f"]), iterations=int(stats.get("iter_count", 0)),
                           converged=converged, solve_time=solve_time, max_violation=viol, status=status,
                           **self._nan_gains(), solver=self.solver_name, x0=x0, xi=xi)
-        res.clamped = _gains.active_controls(U, task.u_lb, task.u_ub)
+        lam_g = np.asarray(r["lam_g"]).ravel()
+        res.clamped = _gains.active_controls(U, task.u_lb, task.u_ub, np.asarray(r["lam_x"]).ravel()[self._ui_])
+        mu_h = lam_g[self._h_i]
+        res.active_h = (mu_h > 0) & (mu_h > -g[self._h_i])  # multiplier exceeds slack, as for u
         if gains and np.all(np.isfinite(w)):
-            self._add_gains(res, np.asarray(r["lam_g"]).ravel(), g)
+            self._add_gains(res, lam_g)
         return res
 
     def _violation(self, g: np.ndarray, U: np.ndarray) -> float:
@@ -201,17 +203,17 @@ class TrajOptSolver:
             g[:] = np.inf
         return SolveResult(X=X, U=U, cost=float("nan"), iterations=0, converged=False, solve_time=solve_time,
                            max_violation=self._violation(g.ravel(), U), status=status, **self._nan_gains(),
-                           clamped=np.zeros((self.T, self.task.nu), dtype=bool), solver=self.solver_name,
+                           clamped=np.zeros((self.T, self.task.nu), dtype=bool),
+                           active_h=np.zeros((self.T, self.task.n_h), dtype=bool), solver=self.solver_name,
                            x0=x0, xi=xi)
 
-    def _add_gains(self, res: SolveResult, lam_g: np.ndarray, g: np.ndarray) -> None:
+    def _add_gains(self, res: SolveResult, lam_g: np.ndarray) -> None:
         t0 = time.perf_counter()
         task = self.task
         mu_h = lam_g[self._h_i]
         try:
-            A, B, H, HT, dh = _gains.linearize(self._gfun, task, res.X, res.U, res.xi, lam_g[self._gap_i],
-                                               lam_g[self._init_i], mu_h)
-            act = (g[self._h_i] > -_gains.STATE_ACTIVE_TOL) & (mu_h > _gains.STATE_ACTIVE_TOL)  # (T, n_h)
+            A, B, H, HT, dh = _gains.linearize(self._gfun, task, res.X, res.U, res.xi, lam_g[self._gap_i], mu_h)
+            act = res.active_h
             if act.any():
                 C = [np.zeros((0, task.ndx))] + [dh[t + 1][act[t]] for t in range(self.T)]
                 K, _ = _gains.riccati_gains(A, B, H, HT, res.clamped, C)
