@@ -56,6 +56,11 @@ def _task_help() -> str:
     return "Task name, one of: " + ", ".join(task_names()) + " (see `sdp tasks`)."
 
 
+_EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
+                  "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
+_SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
+
+
 @app.command("collect")
 @clean_errors
 def collect_cmd(
@@ -69,6 +74,8 @@ def collect_cmd(
     policy: Annotated[Optional[Path], typer.Option(help="Warm-start TO with this policy's rollouts and keep the better of policy-guess and naive-guess solves (Algorithm 1, lines 3-8).")] = None,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="With --policy: actions played per prediction.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
+    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
     from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
@@ -82,7 +89,8 @@ def collect_cmd(
                            t_a=t_a, k_rollout=k_rollout)
     out = out or Path("data") / f"{task}-n{n_traj}-s{seed}.npz"
     with collect_progress(n_traj) as on_update:
-        path, stats = collect(config, out, workers=workers, progress=on_update)
+        path, stats = collect(config, out, workers=workers, progress=on_update, executor=executor,
+                              scheduler=scheduler)
     typer.echo(f"wrote {path}: {stats.kept} trajectories, {stats.rejected} rejected "
                f"({stats.convergence_rate:.0%} converged), mean solve {stats.mean_solve_time:.3f} s, "
                f"wall {stats.wall_time:.1f} s")
@@ -118,13 +126,16 @@ def refine_cmd(
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
     workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
+    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
 ) -> None:
     """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
     from sdp_cli.refine import refine
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
-    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, workers=workers)
+    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, workers=workers, executor=executor,
+                     scheduler=scheduler)
     typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins}; "
                f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
                f"mean solve {s.mean_pol_time:.3f} s vs {s.mean_base_time:.3f} s")
@@ -136,12 +147,22 @@ def evaluate_cmd(
     rollouts: Annotated[Path, typer.Option(help="Rollout artifact from `sdp rollout`.")],
     out: Annotated[Path, typer.Option(help="CSV file to write (one row).")],
     refined: Annotated[Optional[Path], typer.Option(help="Dataset from `sdp refine` of these rollouts.")] = None,
+    tag: Annotated[Optional[list[str]], typer.Option(help="Extra column KEY=VALUE (repeatable), e.g. --tag experiment=small.")] = None,
+    metrics: Annotated[Optional[Path], typer.Option(help="Also write the row as a JSON metrics file (DVC metrics).")] = None,
 ) -> None:
     """Summarize a run as one tidy CSV row (policy, refined and TO-alone metrics)."""
-    from sdp_cli.evaluate import evaluation_row, write_evaluation
+    from sdp_cli.evaluate import evaluation_row, write_evaluation, write_metrics
 
-    row = evaluation_row(rollouts, refined)
+    extra = {}
+    for t in tag or []:
+        if "=" not in t:
+            raise SdpError(f"--tag must be KEY=VALUE, got {t!r}")
+        k, v = t.split("=", 1)
+        extra[k] = v
+    row = evaluation_row(rollouts, refined, extra)
     write_evaluation([row], out)
+    if metrics is not None:
+        write_metrics(row, metrics)
     typer.echo(f"wrote {out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                             for k, v in row.items() if k in (
                                                 "method", "policy_cost_mean", "refined_cost_mean",
@@ -204,6 +225,82 @@ def train_cmd(
                       action=action, save_at=save)
     path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
     typer.echo(f"wrote {path}")
+
+
+def _int_list(value: Optional[str], name: str) -> tuple:
+    if not value:
+        return ()
+    try:
+        return tuple(int(v) for v in value.split(","))
+    except ValueError:
+        raise SdpError(f"{name} must be comma-separated integers, got {value!r}") from None
+
+
+@app.command("loop")
+@clean_errors
+def loop_cmd(
+    task: Annotated[str, typer.Option(help=_task_help())],
+    method: Annotated[str, typer.Option(help="sdp, dp, pddp or pddp_s.")],
+    out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
+    n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
+    n_traj: Annotated[str, typer.Option("--n-traj", help="Trajectories per iteration, e.g. 30 or 30,30,60 (last repeats).")] = "30",
+    epochs: Annotated[int, typer.Option(help="Training epochs per iteration (n_pl).")] = 1000,
+    seed: Annotated[int, typer.Option(help="Seed of collection (1000*seed + k) and training.")] = 0,
+    horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h.")] = 32,
+    t_a: Annotated[Optional[int], typer.Option("--t-a", help="T_a of the rollouts that warm-start collection (default T_h - T_o).")] = None,
+    eval_t_a: Annotated[Optional[str], typer.Option("--eval-t-a", help="T_a values to evaluate, e.g. 1,4,8 (default: --t-a).")] = None,
+    k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
+    n_test: Annotated[int, typer.Option("--n-test", help="Test instances (fixed set from the test seed).")] = 50,
+    test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
+    reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
+    max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
+    workers: Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "cpu",
+    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
+) -> None:
+    """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
+    from sdp_cli.loop import LoopConfig, run_loop
+    from sdp_cli.train import resolve_device
+
+    opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size)) if v is not None}
+    cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),
+                     epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
+                     eval_t_a=_int_list(eval_t_a, "--eval-t-a"), k_rollout=k_rollout, n_test=n_test,
+                     test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
+                     device=str(resolve_device(device)), train_options=opts)
+    summary = run_loop(cfg, out, log=typer.echo)
+    cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "to_alone_cost_mean",
+                        "success_rate") if c in summary]
+    typer.echo(summary[cols].to_string(index=False))
+
+
+@app.command("pipeline")
+@clean_errors
+def pipeline_cmd(
+    experiment: Annotated[str, typer.Argument(help="Experiment name: a file pipelines/<name>.yaml (small, fig1, fig2, fig3, fig4).")],
+    params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
+) -> None:
+    """Select the experiment that `dvc repro` runs (expands pipelines/<name>.yaml into params.yaml)."""
+    from sdp_cli.pipeline import select_experiment
+
+    counts = select_experiment(experiment, params)
+    typer.echo(f"selected {experiment!r} in {params}: " + ", ".join(f"{v} {k}" for k, v in counts.items())
+               + "; run `dvc repro`")
+
+
+@app.command("report")
+@clean_errors
+def report_cmd(
+    runs: Annotated[Path, typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")],
+    out: Annotated[Path, typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG).")] = Path("results"),
+    experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
+) -> None:
+    """Write the paper's tables and figures from whatever runs exist."""
+    from sdp_cli.report.make import make_report
+
+    files = make_report(runs, out, experiment)
+    typer.echo(f"wrote {len(files)} files to {out}")
 
 
 def main() -> None:  # pragma: no cover - entry point

@@ -70,6 +70,15 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
     return row
 
 
+def write_metrics(row: dict, out: str | os.PathLike) -> Path:
+    """The row as a JSON object (DVC metrics file); non-finite numbers become null."""
+    import json
+    import math
+
+    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+    return atomic_write_bytes(out, lambda f: f.write(json.dumps(clean, indent=2, default=str).encode()))
+
+
 def write_evaluation(rows: list[dict], out: str | os.PathLike) -> Path:
     """Write rows as CSV atomically."""
     df = pd.DataFrame(rows)

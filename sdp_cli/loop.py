@@ -1,0 +1,158 @@
+"""``sdp loop``: Algorithm 1 end to end, resumable.
+
+For iteration ``k = 0 .. n_algo-1`` in ``OUT/it<k>/``:
+
+1. ``data.npz``   — collect ``n_traj[k]`` trajectories: naive-guess TO at ``k = 0``, then TO
+   warm-started by the previous policy with ArgminCost (``sdp collect --policy``); the
+   collection seed of iteration ``k`` is ``1000 * seed + k`` (disjoint from the test seed);
+2. ``buffer.npz`` — only with ``reset_buffer=False``: the union of all collections so far;
+3. ``policy/``    — ``sdp train`` for ``epochs`` epochs, from the previous iteration's
+   weights, EMA and normalizer (``--init``) when ``k > 0``;
+4. ``eval/``      — ``sdp rollout`` on the fixed test set (``n_test`` instances of the test
+   seed), ``sdp refine`` of those rollouts (policy guess vs naive guess) and ``sdp evaluate``.
+
+Every stage writes its artifact atomically, so "the artifact exists" means "the stage is
+done": re-running the same command after a kill continues from the last finished stage
+(training itself resumes from its last checkpoint).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import atomic_write_bytes, load_npz, save_npz
+from sdp_cli.errors import SdpError
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    task: str
+    method: str
+    n_algo: int = 1
+    n_traj: tuple = (30,)          # per iteration; the last value repeats
+    epochs: int = 1000
+    seed: int = 0
+    horizon: int = 32              # T_h
+    t_a: int | None = None         # T_a of the rollouts used to warm-start collection
+    eval_t_a: tuple = ()           # T_a values evaluated on the test set (default: t_a)
+    k_rollout: int | None = None
+    n_test: int = 50
+    test_seed: int = 0
+    reset_buffer: bool = True
+    max_iter: int = 1000
+    workers: int | None = None
+    device: str = "cpu"
+    train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
+
+    def __post_init__(self):
+        if self.n_algo <= 0:
+            raise SdpError(f"n_algo must be > 0, got {self.n_algo}")
+        if not self.n_traj or min(self.n_traj) <= 0:
+            raise SdpError(f"n_traj must be positive, got {list(self.n_traj)}")
+        if self.epochs <= 0:
+            raise SdpError(f"epochs must be > 0, got {self.epochs}")
+        if self.n_test <= 0:
+            raise SdpError(f"n_test must be > 0, got {self.n_test}")
+
+    def n_traj_at(self, k: int) -> int:
+        return int(self.n_traj[min(k, len(self.n_traj) - 1)])
+
+    def collect_seed(self, k: int) -> int:
+        return 1000 * self.seed + k
+
+
+def merge_datasets(paths: list[Path], out: Path) -> Path:
+    """Union of dataset artifacts of one task (the non-reset buffer of Algorithm 1)."""
+    parts = [load_npz(p, kind="dataset") for p in paths]
+    tasks = {m["task"] for _, m in parts}
+    if len(tasks) != 1:
+        raise SdpError(f"cannot merge datasets of different tasks: {sorted(tasks)}")
+    keys = [k for k in parts[0][0] if not k.startswith("inst_") and all(k in a for a, _ in parts)]
+    arrays = {k: np.concatenate([a[k] for a, _ in parts]) for k in keys}
+    meta = dict(parts[-1][1])
+    extra = {k: meta[k] for k in ("task", "task_options", "task_params", "dims") if k in meta}
+    return save_npz(out, arrays, kind="dataset", config={"merged": [str(p) for p in paths]}, **extra)
+
+
+def _train_done(policy_dir: Path) -> bool:
+    ck = policy_dir / "checkpoint.pt"
+    if not ck.exists():
+        return False
+    from sdp_cli.policy.checkpoint import load_checkpoint
+
+    return bool(load_checkpoint(ck).get("finished"))
+
+
+def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra: dict,
+                       log: Callable[[str], None]) -> pd.DataFrame:
+    """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a."""
+    from sdp_cli.evaluate import evaluation_row, write_evaluation
+    from sdp_cli.refine import refine
+    from sdp_cli.rollout import RolloutConfig, rollout
+
+    rows = []
+    for t_a in cfg.eval_t_a or (cfg.t_a,):
+        tag = f"ta{t_a}" if t_a is not None else "ta-default"
+        ro, rf = eval_dir / f"rollout_{tag}.npz", eval_dir / f"refined_{tag}.npz"
+        if not ro.exists():
+            _, s = rollout(policy_dir, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
+                                                         k_rollout=cfg.k_rollout), device=cfg.device)
+            log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
+        if not rf.exists():
+            refine(ro, rf, max_iter=cfg.max_iter, workers=cfg.workers)
+        rows.append(evaluation_row(ro, rf, extra))
+    df = pd.DataFrame(rows)
+    write_evaluation(rows, eval_dir / "eval.csv")
+    return df
+
+
+def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print) -> pd.DataFrame:
+    """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table."""
+    from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.train import train
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tables, prev_policy, datasets = [], None, []
+    for k in range(cfg.n_algo):
+        d = out / f"it{k}"
+        data = d / "data.npz"
+        if not data.exists():
+            log(f"[it{k}] collect {cfg.n_traj_at(k)} trajectories" + (" (policy warm start)" if prev_policy else ""))
+            ccfg = CollectConfig(task=cfg.task, n_traj=cfg.n_traj_at(k), seed=cfg.collect_seed(k),
+                                 max_iter=cfg.max_iter,
+                                 policy=str(prev_policy) if prev_policy else None,
+                                 policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
+                                 t_a=cfg.t_a if prev_policy else None,
+                                 k_rollout=cfg.k_rollout if prev_policy else None)
+            collect(ccfg, data, workers=cfg.workers)
+        datasets.append(data)
+        train_data = data
+        if not cfg.reset_buffer and k > 0:
+            train_data = d / "buffer.npz"
+            if not train_data.exists():
+                merge_datasets(datasets, train_data)
+        policy_dir = d / "policy"
+        if not _train_done(policy_dir):
+            log(f"[it{k}] train {cfg.method} for {cfg.epochs} epochs" + (" (init from previous)" if prev_policy else ""))
+            tcfg = TrainConfig.from_dict({**TrainConfig().to_dict(), "method": cfg.method, "epochs": cfg.epochs,
+                                          "seed": cfg.seed, "T_h": cfg.horizon, **cfg.train_options})
+            train(train_data, policy_dir, tcfg, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
+                  init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=False,
+                  log=lambda s: None)
+        log(f"[it{k}] evaluate on {cfg.n_test} test instances")
+        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"iteration": k, "loop_seed": cfg.seed}, log)
+        tables.append(df)
+        prev_policy = policy_dir
+    summary = pd.concat(tables, ignore_index=True)
+    atomic_write_bytes(out / "summary.csv", lambda f: f.write(summary.to_csv(index=False).encode()))
+    atomic_write_bytes(out / "loop_config.json",
+                       lambda f: f.write(pd.Series(asdict(cfg)).to_json(indent=2).encode()))
+    return summary

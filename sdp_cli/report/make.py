@@ -1,0 +1,245 @@
+"""``sdp report``: the paper's tables and figures from whatever runs exist.
+
+Per task found under ``--runs`` (file names carry the task):
+
+- ``fig1_<task>``: mean policy cost vs n_traj per method and epoch count (iteration 0),
+  mean and 95% CI over seeds, TO-alone line, an infinity marker when the mean exceeds 1e5;
+- ``fig2a_<task>``: mean cost per algorithm iteration, policy and refined, per method;
+- ``fig2b_<task>``: histogram of TO iterations with (policy warm start) and without (naive);
+- ``table2c_<task>``: the T_a trade-off (policy cost, refined cost, TO iterations, rollout,
+  solving and total time, TO-alone columns) at the last iteration, CSV and markdown;
+- ``traj_<task>``: trajectories of a few test instances, TO alone vs policy vs refined;
+- ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import atomic_write_bytes, git_revision, load_npz
+from sdp_cli.report.runs import load_runs, mean_ci
+
+DIVERGED = 1e5
+COLORS = {"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save_fig(fig, path: Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
+
+
+def _save_csv(df: pd.DataFrame, path: Path) -> Path:
+    return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
+
+
+def _save_md(df: pd.DataFrame, path: Path, title: str) -> Path:
+    def fmt(v):
+        return f"{v:.4g}" if isinstance(v, (float, np.floating)) else str(v)
+
+    lines = [f"# {title}", "", "| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return atomic_write_bytes(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
+
+
+def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
+    rows = []
+    for key, g in df.groupby(by, dropna=False):
+        m, h, n = mean_ci(g[col])
+        rows.append({**dict(zip(by, key if isinstance(key, tuple) else (key,))), "mean": m, "ci95": h, "n_seeds": n})
+    return pd.DataFrame(rows)
+
+
+def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    d = df[(df.task == task) & (df.iteration == 0)]
+    if d.empty or d["n_traj"].isna().all():
+        return []
+    tab = _agg(d, ["method", "epochs", "n_traj"], "policy_cost_mean").sort_values(["method", "epochs", "n_traj"])
+    to = mean_ci(d["to_alone_cost_mean"]) if "to_alone_cost_mean" in d else (np.nan, np.nan, 0)
+    tab["to_alone_mean"] = to[0]
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
+    top = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0) * 1.3
+    for (method, epochs), g in tab.groupby(["method", "epochs"]):
+        ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
+        ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
+        ax.errorbar(g["n_traj"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), ls=ls, marker="o",
+                    color=COLORS.get(method), capsize=3, label=f"{method.upper()} ({epochs} ep.)")
+        for n in g["n_traj"][~ok]:
+            ax.annotate("∞", (n, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
+    if np.isfinite(to[0]):
+        ax.axhline(to[0], color="black", ls=":", label="TO alone")
+    ax.set_xscale("log")
+    ax.set_ylim(0, top * 1.05)
+    ax.set_xlabel("n_traj (trajectories in the dataset)")
+    ax.set_ylabel("mean cost on test instances")
+    ax.set_title(f"Fig. 1 — sample efficiency, {task}")
+    ax.legend(fontsize=8)
+    return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
+
+
+def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    d = df[df.task == task]
+    if d.empty:
+        return []
+    rows = []
+    for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined")):
+        if col in d:
+            t = _agg(d, ["method", "iteration"], col)
+            t["curve"] = what
+            rows.append(t)
+    tab = pd.concat(rows, ignore_index=True)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for (method, curve), g in tab.groupby(["method", "curve"]):
+        g = g.sort_values("iteration")
+        ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
+        ax.errorbar(g["iteration"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), marker="o", capsize=3,
+                    ls="-" if curve == "policy" else "--", color=COLORS.get(method), label=f"{method.upper()} {curve}")
+    if "to_alone_cost_mean" in d:
+        to = mean_ci(d["to_alone_cost_mean"])[0]
+        if np.isfinite(to):
+            ax.axhline(to, color="black", ls=":", label="TO alone")
+    ax.set_xlabel("algorithm iteration")
+    ax.set_ylabel("mean cost on test instances")
+    ax.set_title(f"Fig. 2a — alternating loop, {task}")
+    ax.legend(fontsize=8)
+    return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
+
+
+def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    d = df[df.task == task]
+    if d.empty:
+        return []
+    last = d[d.iteration == d.iteration.max()]
+    pol, base = [], []
+    for src in last["source"].unique():
+        p = Path(src)
+        for f in sorted(p.glob("refined*.npz")):
+            a, _ = load_npz(f, kind="dataset")
+            if "inst_pol_iterations" in a:
+                pol.append(a["inst_pol_iterations"][a["inst_pol_iterations"] >= 0])
+                base.append(a["inst_base_iterations"][a["inst_base_iterations"] >= 0])
+    if not pol:
+        return []
+    pol, base = np.concatenate(pol), np.concatenate(base)
+    tab = pd.DataFrame({"guess": ["policy"] * len(pol) + ["naive"] * len(base),
+                        "iterations": np.concatenate([pol, base]).astype(int)})
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    hi = max(int(tab.iterations.max()), 1)
+    bins = np.unique(np.geomspace(1, hi + 1, 25).astype(int))
+    ax.hist(base, bins=bins, alpha=0.6, color="gray", label=f"TO alone (naive guess), mean {base.mean():.0f}")
+    ax.hist(pol, bins=bins, alpha=0.6, color="tab:red", label=f"warm-started by the policy, mean {pol.mean():.0f}")
+    ax.set_xscale("log")
+    ax.set_xlabel("TO iterations")
+    ax.set_ylabel("instances")
+    ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())})")
+    ax.legend(fontsize=8)
+    return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
+
+
+TABLE2C = {"policy_cost_mean": "policy cost", "refined_cost_mean": "refined cost",
+           "policy_guess_iterations_mean": "TO iterations", "rollout_time_per_instance": "rollout time (s)",
+           "policy_guess_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
+           "to_alone_cost_mean": "TO alone cost", "to_alone_iterations_mean": "TO alone iterations",
+           "to_alone_solve_time_mean": "TO alone time (s)"}
+
+
+def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    d = df[(df.task == task)].copy()
+    if d.empty or "policy_guess_solve_time_mean" not in d:
+        return []
+    d = d[d.iteration == d.iteration.max()]
+    d = d[d.epochs == d.epochs.max()]
+    d["total_time"] = d["rollout_time_per_instance"] + d["policy_guess_solve_time_mean"]
+    cols = [c for c in TABLE2C if c in d]
+    tab = d.groupby(["method", "t_a"])[cols].mean().reset_index().sort_values(["method", "t_a"])
+    tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
+    return [_save_csv(tab, out / f"table2c_{task}.csv"),
+            _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration)")]
+
+
+def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
+    """TO alone vs policy vs refined for a few instances of the best-performing run."""
+    from sdp_cli.report.plot_dataset import trajectory_points
+    from sdp_cli.tasks import get_task
+
+    d = df[df.task == task_name]
+    d = d[d.iteration == d.iteration.max()].sort_values("policy_cost_mean")
+    for src in d["source"]:
+        ro, rf = sorted(Path(src).glob("rollout*.npz")), sorted(Path(src).glob("refined*.npz"))
+        if ro and rf:
+            break
+    else:
+        return []
+    r, rmeta = load_npz(ro[0], kind="rollout")
+    f, _ = load_npz(rf[0], kind="dataset")
+    task = get_task(task_name, **(rmeta.get("task_options") or {}))
+    solver_X = {}
+    if "index" in f:
+        solver_X = {int(i): f["X"][k] for k, i in enumerate(f["index"])}
+    plt = _plt()
+    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * n_show, 3.2), squeeze=False)
+    for j, ax in enumerate(axes[0][: min(n_show, len(r["X"]))]):
+        xi = r["xi"][j]
+        X0, _ = task.naive_guess(xi)
+        curves = [("naive guess", X0, "gray", ":"), ("policy", r["X"][j], COLORS.get(rmeta.get("method"), "tab:red"), "-")]
+        if j in solver_X:
+            curves.append(("refined", solver_X[j], "black", "--"))
+        for label, X, c, ls in curves:
+            if np.all(np.isfinite(X)):
+                P = trajectory_points(task, X)
+                ax.plot(P[:, 1], P[:, 2] if task.nq <= 2 else P[:, 0], color=c, ls=ls, label=label)
+                ax.plot(P[0, 1], P[0, 2] if task.nq <= 2 else P[0, 0], "o", color="tab:blue", ms=4)
+        ax.set_title(f"instance {j}", fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"{task_name}: {rmeta.get('method', '').upper()} policy vs refined vs naive guess "
+                 f"({'y-z plane' if task.nq <= 2 else 'y-x plane'})", fontsize=10)
+    return [_save_fig(fig, out / f"traj_{task_name}.png")]
+
+
+def make_report(runs: str | Path, out: str | Path, experiment: str | None = None) -> list[Path]:
+    """Write every table and figure the available runs allow; returns the written paths."""
+    runs, out = Path(runs), Path(out)
+    df = load_runs(runs)
+    written = [_save_csv(df.drop(columns=["source"]), out / "all_runs.csv")]
+    for task in sorted(df.task.dropna().unique()):
+        for fn in (fig1, fig2a, fig2b, table2c, trajectories):
+            written += fn(df, task, out)
+    written.append(_index(df, runs, out, experiment, written))
+    return written
+
+
+def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path]) -> Path:
+    budgets = (df.groupby(["task", "method"]).agg(
+        seeds=("train_seed", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
+        n_traj=("n_traj", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
+        epochs=("epochs", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
+        iterations=("iteration", lambda s: int(s.max()) + 1),
+        n_test=("n", "max"), t_a=("t_a", lambda s: ",".join(str(v) for v in sorted(set(s.dropna()))))).reset_index())
+    lines = [f"# Results: {experiment or runs.name}", "",
+             f"Produced by `sdp report --runs {runs} --out {out}` at commit `{git_revision()}`",
+             f"from the experiment `{experiment or runs.name}` (see `pipelines/{experiment or runs.name}.yaml`).", "",
+             "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
+             "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
+    lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
+    lines += ["", "## Files", ""]
+    lines += [f"- `{p.name}`" for p in files if p.parent == out]
+    return atomic_write_bytes(out / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
