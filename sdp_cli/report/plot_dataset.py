@@ -6,6 +6,7 @@ the position of the model's last frame (the pendulums' tip). Start = first path 
 (blue dot), goal = ``task.target(xi)`` or ``task.goal`` (red cross). Quadrotor columns are
 drawn as translucent cylinders (true radius) between ``task.z_bounds``, with their
 inflated radius (column + airframe, the constraint) as a dashed circle at the floor.
+Left panel: 3D view; right panel: top view (x, y) of the same paths and columns.
 """
 
 from __future__ import annotations
@@ -60,6 +61,16 @@ def _draw_columns(ax, task, zlim) -> None:
             ax.plot(cx + R * np.cos(th), cy + R * np.sin(th), np.full_like(th, z0), "--", color="0.5", lw=0.8)
 
 
+def _draw_columns_top(ax, task) -> None:
+    import matplotlib.patches as mpatches
+
+    r_quad = float(getattr(task, "r_quad", 0.0))
+    for cx, cy, r in np.asarray(getattr(task, "columns", np.zeros((0, 3)))):
+        ax.add_patch(mpatches.Circle((cx, cy), r, color="0.45", alpha=0.5, lw=0))
+        if r_quad:
+            ax.add_patch(mpatches.Circle((cx, cy), r + r_quad, fill=False, ls="--", color="0.5", lw=0.8))
+
+
 def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int = 120,
                  title: str | None = None) -> tuple[Path, int]:
     """Draw the dataset at ``path`` into the image ``out``; returns (path written, trajectories drawn)."""
@@ -94,15 +105,20 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     if zlim is not None:
         lo[2], hi[2] = min(lo[2], zlim[0]), max(hi[2], zlim[1])
 
-    fig = plt.figure(figsize=(7, 6))
-    ax = fig.add_subplot(projection="3d")
+    fig = plt.figure(figsize=(12, 5.5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    top = fig.add_subplot(1, 2, 2)
     cmap = plt.get_cmap("viridis")
     for i, (P, g) in enumerate(zip(paths, goals)):
         c = cmap(i / max(n - 1, 1))
         ax.plot(P[:, 0], P[:, 1], P[:, 2], color=c, lw=1.2)
+        top.plot(P[:, 0], P[:, 1], color=c, lw=1.2)
         ax.scatter(*P[0], color="tab:blue", s=18, depthshade=False, label="start" if i == 0 else None)
+        top.scatter(*P[0, :2], color="tab:blue", s=18, zorder=3)
         if g is not None:
             ax.scatter(*g, color="tab:red", marker="x", s=30, depthshade=False, label="goal" if i == 0 else None)
+            top.scatter(*g[:2], color="tab:red", marker="x", s=30, zorder=3)
+    _draw_columns_top(top, task)
     if zlim is not None:
         _draw_columns(ax, task, zlim)
         cols = np.asarray(getattr(task, "columns", np.zeros((0, 3))))
@@ -111,6 +127,7 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
             hi[:2] = np.maximum(hi[:2], (cols[:, :2] + cols[:, 2:]).max(0))
     if hasattr(task, "base_marker"):
         ax.scatter(*task.base_marker, color="k", marker="s", s=30, depthshade=False, label="robot base")
+        top.scatter(*task.base_marker[:2], color="k", marker="s", s=30)
     span = np.maximum(hi - lo, 1e-3)
     pad = 0.05 * span.max()
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
@@ -121,7 +138,14 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
     ax.legend(loc="upper left", fontsize=8)
-    ax.set_title(title or f"{meta['task']}: {n} of {len(X)} trajectories ({Path(path).name})", fontsize=10)
+    top.set_xlim(lo[0] - pad, hi[0] + pad)
+    top.set_ylim(lo[1] - pad, hi[1] + pad)
+    top.set_aspect("equal")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    top.set_title("top view", fontsize=10)
+    top.grid(alpha=0.3)
+    fig.suptitle(title or f"{meta['task']}: {n} of {len(X)} trajectories ({Path(path).name})", fontsize=11)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format=out.suffix.lower().lstrip(".").replace("jpg", "jpeg"), dpi=dpi)

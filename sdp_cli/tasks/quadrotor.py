@@ -24,7 +24,7 @@ ceiling ``z <= Z_CEIL = 2.5``, and for each vertical column (cx, cy, r) (infinit
 ``(R^2 - d^2) / (2 R) <= 0`` with d the horizontal distance of the base to the column axis
 and ``R = r + R_QUAD``, ``R_QUAD = 0.4`` m (the bounding radius of hector's collision mesh).
 Layouts (cx, cy, r) in ``COLUMNS``: 1 = a column (0, 0, 0.5); 3 = a row x = 0 at
-y = -1.8, 0, 1.8 (r = 0.3); 9 = a 3x3 grid x, y in {-1.2, 0, 1.2} x {-1.6, 0, 1.6} (r = 0.2),
+y = -1.8, 0, 1.8 (r = 0.3); 9 = a 3x3 grid x, y in {-1.5, 0, 1.5}^2 (r = 0.2): 0.3 m wide corridors,
 so that the straight line from start to goal usually crosses a column. The layout is fixed
 per task name (not part of xi).
 
@@ -83,7 +83,7 @@ COLUMNS = {
     0: np.zeros((0, 3)),
     1: np.array([[0.0, 0.0, 0.5]]),
     3: np.array([[0.0, y, 0.3] for y in (-1.8, 0.0, 1.8)]),
-    9: np.array([[x, y, 0.2] for x in (-1.2, 0.0, 1.2) for y in (-1.6, 0.0, 1.6)]),
+    9: np.array([[x, y, 0.2] for x in (-1.5, 0.0, 1.5) for y in (-1.5, 0.0, 1.5)]),
 }
 
 
