@@ -82,26 +82,26 @@ class RefineStats:
     mean_base_time: float = float("nan")
 
 
-def _map(fn: Callable, argsets: list[tuple], workers: int, on_result: Callable[[int, dict], None]) -> None:
-    """Run ``fn(*args)`` for each argset on ``workers`` processes, calling back in completion order."""
-    if workers == 1 or len(argsets) <= 1:
-        for i, a in enumerate(argsets):
-            on_result(i, fn(*a))
-        return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-        futs = {pool.submit(fn, *a): i for i, a in enumerate(argsets)}
-        for f in as_completed(futs):
-            on_result(futs[f], f.result())
+def failed_record(xi: np.ndarray, status: str) -> dict:
+    """The record of an instance whose job raised: nothing converged, nothing kept."""
+    return {"xi": xi, "pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
+            "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
+            "winner": WIN_NONE, "converged": np.asarray(False), "status": status}
 
 
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
            baseline: bool = True, workers: int | None = None,
-           progress: Callable[[int], None] | None = None) -> tuple[Path, RefineStats]:
-    """Refine every rollout of an artifact; write a dataset artifact to ``out``."""
+           progress: Callable[[int], None] | None = None, executor: "str | Executor" = "local",
+           scheduler: str | None = None) -> tuple[Path, RefineStats]:
+    """Refine every rollout of an artifact; write a dataset artifact to ``out``.
+
+    ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``
+    (:func:`sdp_cli.executor.make_executor`, or an open executor, not closed here). A job
+    that raises counts as an instance where nothing converged.
+    """
+    from sdp_cli.data.collect import warm_solver
+    from sdp_cli.executor import Executor, check_executor_options, error_status, make_executor
+
     arrays, meta = load_npz(rollouts, kind="rollout")
     for k in ("X", "U", "xi"):
         if k not in arrays:
@@ -111,19 +111,25 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
     n = len(arrays["xi"])
-    workers = max(1, min(workers or os.cpu_count() or 1, n))
-    from sdp_cli.trajopt import get_solver
-
-    get_solver(task, max_iter=max_iter)  # build once before forking workers
+    own = not isinstance(executor, Executor)
+    if own and not scheduler:
+        workers = max(1, min(workers or os.cpu_count() or 1, n))
+    if own:
+        check_executor_options(executor, workers, scheduler)
     recs: list[dict | None] = [None] * n
-
-    def on_result(i: int, rec: dict) -> None:
-        recs[i] = rec
-        if progress:
-            progress(sum(r is not None for r in recs))
-
-    _map(refine_instance, [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i],
-                            max_iter, baseline) for i in range(n)], workers, on_result)
+    ex = make_executor(executor, workers, scheduler) if own else executor
+    try:
+        described = ex.describe()
+        ex.warm(warm_solver, task_name, task_options, max_iter)  # once per worker process
+        argsets = [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i], max_iter, baseline)
+                   for i in range(n)]
+        for i, res in ex.imap_unordered(refine_instance, argsets):
+            recs[i] = res.value if res.ok else failed_record(arrays["xi"][i], error_status(res.error))
+            if progress:
+                progress(sum(r is not None for r in recs))
+    finally:
+        if own:
+            ex.close()
     kept = [i for i in range(n) if recs[i]["winner"] != WIN_NONE]
     out_arrays = {f"inst_{k}": np.array([r[k] for r in recs]) for k in
                   ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost",
@@ -146,7 +152,8 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
             "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
     path = save_npz(out, out_arrays, kind="dataset",
                     config={"rollouts": str(rollouts), "max_iter": max_iter, "baseline": baseline,
-                            "workers": workers, "rollout_config": meta.get("config", {})},
+                            "workers": described.get("workers"),
+                            "executor": described, "rollout_config": meta.get("config", {})},
                     task=task_name, task_params=task.params(), task_options=task_options, dims=dims,
                     source="refine", stats=stats.__dict__)
     return path, stats

@@ -13,20 +13,20 @@ artifact is written atomically, then the partial folder is removed.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
 import time
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
-import multiprocessing as mp
 import numpy as np
 
 from sdp_cli.data.artifacts import load_npz, save_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.executor import error_status
 from sdp_cli.tasks import Task, get_task
 
 RESULT_KEYS = ("X", "U", "K", "A", "B", "Phi", "cost", "iterations", "solve_time", "converged",
@@ -221,9 +221,23 @@ def _next_indices(done: dict, inflight: set, n_traj: int, cap: int) -> Iterator[
         i += 1
 
 
-def _worker_init() -> None:
-    # one BLAS/OpenMP thread per worker: the parallelism is across processes
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+def warm_solver(task_name: str, task_options: dict, max_iter: int) -> int:
+    """Build (or reuse) this process's solver of the task; the process's build count."""
+    from sdp_cli.trajopt import build_count, get_solver
+
+    get_solver(get_task(task_name, **task_options), max_iter=max_iter)
+    return build_count()
+
+
+def failed_result(task: Task, index: int, xi: np.ndarray, status: str) -> dict:
+    """The record of an attempt whose job raised: not converged, NaN arrays of the right shapes."""
+    T, nx, nu, ndx = task.T, task.nx, task.nu, task.ndx
+    nan = lambda *shape: np.full(shape, np.nan)
+    return {"X": nan(T + 1, nx), "U": nan(T, nu), "K": nan(T, nu, ndx), "A": nan(T, ndx, ndx),
+            "B": nan(T, ndx, nu), "Phi": nan(T, ndx, ndx), "cost": np.asarray(np.nan),
+            "iterations": np.asarray(-1), "solve_time": np.asarray(0.0), "converged": np.asarray(False),
+            "max_violation": np.asarray(np.nan), "xi": np.asarray(xi), "index": np.asarray(index),
+            "status": np.asarray(status)}
 
 
 @dataclass
@@ -236,14 +250,52 @@ class CollectStats:
     wall_time: float = 0.0
 
 
+def _run(ex, jobs: _Jobs, task: Task, config: CollectConfig, done: dict, update: Callable) -> None:
+    """Keep ``ex`` busy with the next indices until the kept set is decided; persist each result.
+
+    Results are handled as they finish; a job that raised becomes a failed attempt, a job
+    lost with its worker is not counted and gets submitted again by the next round.
+    """
+    cap = config.attempts_cap
+    inflight: dict = {}
+    try:
+        while kept_indices(done, config.n_traj) is None:
+            room = (ex.max_inflight or max(1, config.n_traj)) - len(inflight)
+            todo = list(itertools.islice(_next_indices(done, set(inflight.values()), config.n_traj, cap),
+                                         max(room, 0)))
+            for (fn, a), i in zip(jobs.make(todo) if todo else [], todo):
+                inflight[ex.submit(fn, *a)] = i
+            if not inflight:
+                break
+            for fut in sorted(ex.wait_any(list(inflight)), key=inflight.get):
+                i = inflight.pop(fut)
+                out = ex.outcome(fut)
+                if out.lost:
+                    continue
+                update(out.value if out.ok else
+                       failed_result(task, i, sample_xi(task, config.seed, i), error_status(out.error)))
+    finally:
+        ex.cancel(list(inflight))
+
+
 def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None = None,
-            progress: Callable[[CollectStats], None] | None = None) -> tuple[Path, CollectStats]:
-    """Run a collection (resuming any partial results) and write the dataset artifact."""
+            progress: Callable[[CollectStats], None] | None = None, executor: "str | Executor" = "local",
+            scheduler: str | None = None) -> tuple[Path, CollectStats]:
+    """Run a collection (resuming any partial results) and write the dataset artifact.
+
+    ``executor``: ``"local"`` (process pool of ``workers``, default all cores), ``"dask"``
+    (a LocalCluster of ``workers`` processes, or the cluster of ``scheduler``), or an open
+    :class:`~sdp_cli.executor.Executor` (used as is, not closed). The result does not
+    depend on it.
+    """
+    from sdp_cli.executor import Executor, check_executor_options, make_executor
+
     out = Path(out)
     if out.exists() and out.is_dir():
         raise SdpError(f"--out {out} is a directory; give a file path such as {out}/dataset.npz")
     task = get_task(config.task, **config.task_options)  # validates the name early
-    workers = max(1, workers or os.cpu_count() or 1)
+    if not isinstance(executor, Executor):
+        check_executor_options(executor, workers, scheduler)  # bad options fail before any work
     store = PartialStore(out, config)
     done = store.load_all()
     t_start = time.perf_counter()
@@ -263,52 +315,36 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
             progress(stats)
 
     update()
-    jobs = _Jobs(config, task)
     cap = config.attempts_cap
+    described = {"kind": "none (resumed complete)"}
     if kept_indices(done, config.n_traj) is None:
-        if workers == 1:
-            while kept_indices(done, config.n_traj) is None:
-                todo = list(_next_indices(done, set(), config.n_traj, cap))
-                if not todo:
-                    break
-                for fn, a in jobs.make(todo[: max(1, config.n_traj)]):
-                    update(fn(*a))
-        else:
-            from sdp_cli.trajopt import get_solver
-
-            get_solver(task, max_iter=config.max_iter)  # build once, inherited by forked workers
-            ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init) as pool:
-                inflight: dict[Future, int] = {}
-                try:
-                    while kept_indices(done, config.n_traj) is None:
-                        room = 2 * workers - len(inflight)
-                        todo = [i for _, i in zip(range(max(room, 0)),
-                                                  _next_indices(done, set(inflight.values()), config.n_traj, cap))]
-                        for (fn, a), i in zip(jobs.make(todo) if todo else [], todo):
-                            inflight[pool.submit(fn, *a)] = i
-                        if not inflight:
-                            break
-                        finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
-                        for fut in sorted(finished, key=inflight.get):
-                            inflight.pop(fut)
-                            update(fut.result())
-                finally:
-                    for fut in inflight:
-                        fut.cancel()
+        jobs = _Jobs(config, task)
+        own = not isinstance(executor, Executor)
+        ex = make_executor(executor, workers, scheduler) if own else executor
+        try:
+            described = ex.describe()
+            # the casadi problem is built once per worker process (inherited by forked pool workers)
+            ex.warm(warm_solver, config.task, config.task_options, config.max_iter)
+            _run(ex, jobs, task, config, done, update)
+        finally:
+            if own:
+                ex.close()
     kept = kept_indices(done, config.n_traj)
     stats.wall_time = time.perf_counter() - t_start
     if kept is None:
         n_conv = sum(bool(r["converged"]) for r in done.values())
+        errors = [str(r["status"]) for r in done.values() if str(r.get("status", "")).startswith("error:")]
+        why = f"; {len(errors)} raised an error, e.g. {errors[0]}" if errors else ""
         raise SdpError(f"only {n_conv} of {config.n_traj} solves converged after {len(done)} attempts "
-                       f"(cap {cap}); raise --max-attempts or --max-iter (finished solves are kept "
+                       f"(cap {cap}){why}; raise --max-attempts or --max-iter (finished solves are kept "
                        f"in {store.dir})")
     extra = ("winner", "pol_cost", "pol_iterations", "base_cost", "base_iterations") if config.policy else ()
     arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index") + extra}
     arrays["converged"] = arrays["converged"].astype(bool)
     dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
             "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
-    path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": workers},
+    path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": described.get("workers"),
+                                                       "executor": described},
                     task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,
                     stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
                            "convergence_rate": stats.convergence_rate,
