@@ -157,7 +157,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         opt.load_state_dict(ts["optimizer"])
         sched.load_state_dict(ts["lr_scheduler"])
         ema.load_state_dict(ts["ema"])
-        gen.set_state(ts["generator"].cpu())
+        ema.to(dev)  # the checkpoint is loaded on the CPU; EMA updates need the weights' device
+        try:
+            gen.set_state(ts["generator"].cpu())
+        except RuntimeError:
+            raise SdpError(f"cannot resume {ck_path} on {dev}: it was trained on another device type "
+                           "(its random state does not carry over); resume with the same --device") from None
         step, wall0 = int(prev["step"]), float(ts["wall_time"])
         rows = _read_metrics(out / "metrics.csv", step)
 
