@@ -13,7 +13,8 @@ An experiment file lists *groups*; each group is a sweep::
         save_at: [500]         # extra epoch counts evaluated (Fig. 1)
         horizon: 16            # T_h
         t_a: 8                 # T_a of the warm-starting rollouts
-        eval_t_a: [8]          # T_a values evaluated on the test set (Table 2c sweeps it)
+        eval_t_a: [8]          # T_a values evaluated on the test set at every iteration
+        eval_t_a_last: [1, 4]  # extra T_a values evaluated at the last iteration only (Table 2c)
         n_test: 50
         train: {batch_size: 256, alpha_sobolev: 1.0}   # optional extra `sdp train` options
 
@@ -36,7 +37,7 @@ from sdp_cli.errors import SdpError
 
 PIPELINES_DIR = Path("pipelines")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
-                  "horizon": 32, "t_a": None, "eval_t_a": [], "k_rollout": None, "n_test": 50, "test_seed": 0,
+                  "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50, "test_seed": 0,
                   "max_iter": 1000, "train": {}}
 _TRAIN_FLAGS = {"batch_size": "--batch-size", "alpha_sobolev": "--alpha-sobolev", "lr": "--lr",
                 "n_proj": "--n-proj", "sobolev_mode": "--sobolev-mode", "diffusion_steps": "--diffusion-steps",
@@ -88,11 +89,16 @@ def expand(name: str, spec: dict) -> dict:
                 key = f"{run}-it{k}"
                 coll = {"task": g["task"], "n_traj": n_traj, "seed": 1000 * seed + k, "max_iter": g["max_iter"],
                         "dir": d}
+                data = f"{d}/data.npz"
                 save_at = ",".join(str(e) for e in g["save_at"] if e < g["epochs"])
                 tr = {"method": method, "epochs": g["epochs"], "seed": seed, "horizon": g["horizon"],
-                      "save_at": f"--save-at {save_at}" if save_at else "", "opts": train_opts, "dir": d}
+                      "save_at": f"--save-at {save_at}" if save_at else "", "opts": train_opts, "dir": d,
+                      "data": data}
                 if k == 0:
-                    out["collect_first"][key] = coll
+                    # the naive-guess collection does not depend on the method: shared by all runs
+                    dkey = f"{g['task']}-n{n_traj}-s{seed}"
+                    tr["data"] = f"runs/{name}/data/{dkey}/data.npz"
+                    out["collect_first"][dkey] = {**coll, "dir": f"runs/{name}/data/{dkey}"}
                     out["train_first"][key] = tr
                 else:
                     prev = f"{base}/it{k - 1}/policy"
@@ -100,7 +106,10 @@ def expand(name: str, spec: dict) -> dict:
                     out["train_next"][key] = {**tr, "prev": prev}
                 ckpts = [(g["epochs"], "checkpoint.pt")] + [(e, f"epoch_{e}.pt") for e in g["save_at"]
                                                             if e < g["epochs"]]
-                for (epochs, ck), t_a in itertools.product(ckpts, eval_t_a):
+                t_as = list(eval_t_a)
+                if k == g["n_algo"] - 1:
+                    t_as += [t for t in g["eval_t_a_last"] if t not in t_as]
+                for (epochs, ck), t_a in itertools.product(ckpts, t_as):
                     ta = "default" if t_a is None else t_a
                     ekey = f"{key}-e{epochs}-ta{ta}"
                     tags = (f"--tag experiment={name} --tag run={run} --tag iteration={k} "
