@@ -176,3 +176,53 @@ def test_bounded_least_squares_satisfies_kkt():
     cand = rng.uniform(lb, ub, (2000, 4))
     for u, b in zip(U[:5], B[:5]):
         assert np.sum((ALLOC @ u - b) ** 2) <= np.min(np.sum((cand @ ALLOC.T - b) ** 2, axis=1)) + 1e-9
+
+
+# ----------------------------------------------------------------------------- optimizer + gains
+def _solve(name, T, start_xy, goal_xy, z=1.2):
+    from sdp_cli.trajopt import get_solver
+
+    task = get_task(name, T=T)
+    xi = task.sample_xi(np.random.default_rng(0))
+    xi[:3] = [*start_xy, z]
+    xi[task.nx:task.nx + 3] = [*goal_xy, z]
+    res = get_solver(task, solver="ipopt", tol=1e-10, jit=False).solve(xi, *task.naive_guess(xi))
+    assert res.converged, res.status
+    return task, xi, res
+
+
+def test_gains_match_finite_differences_without_obstacles():
+    """quadrotor-0: K_t (4, 12) in the tangent space vs FD of the re-solved tail, at free and clamped steps."""
+    from sdp_cli.trajopt.verify import check_dynamics_jacobians, check_gains
+
+    task, xi, res = _solve("quadrotor-0", 30, (-0.5, 0.0), (0.5, 0.3))
+    assert res.K.shape == (30, 4, 12) and res.A.shape == (30, 12, 12)
+    np.testing.assert_allclose(np.linalg.norm(res.X[:, 3:7], axis=1), 1.0, atol=1e-9)
+    gaps = [task.difference(task.step(res.X[t], res.U[t]), res.X[t + 1]) for t in range(task.T)]
+    assert np.abs(gaps).max() < 1e-8
+    free = np.flatnonzero(~res.clamped.any(1))
+    clamped = np.flatnonzero(res.clamped.any(1))
+    assert len(free) >= 2 and len(clamped) >= 1
+    errA, errB = check_dynamics_jacobians(task, res, [int(free[0]), int(clamped[0])])
+    assert errA < 1e-6 and errB < 1e-6
+    for c in check_gains(task, res, [int(free[0]), int(free[-1]), int(clamped[0])], eps=1e-5):
+        assert c.converged and c.rel_error < 1e-4, (c.t, c.rel_error)
+        assert c.clamped_fd < 1e-8
+
+
+def test_gains_with_active_column_constraint_match_finite_differences():
+    """quadrotor-1 grazing the column: steps whose next states touch it (treated as equalities)."""
+    from sdp_cli.trajopt.verify import check_gains
+
+    task, xi, res = _solve("quadrotor-1", 80, (-1.3, 0.1), (1.3, 0.0))
+    h = np.array([np.asarray(task.f_state_constraints(x, xi)).ravel() for x in res.X[1:]])  # h(x_1..x_T)
+    assert res.max_violation < 1e-6 and h.max() < 1e-6
+    active = np.flatnonzero(h[:, 2] > -1e-6) + 1  # states x_s on the inflated column
+    assert len(active)
+    # steps t whose control is free and whose next state(s) are active
+    steps = [s - 1 for s in active if not res.clamped[s - 1].any()]
+    steps += [s - 2 for s in active if s >= 2 and not res.clamped[s - 2].any()]
+    steps = sorted(set(steps))[:3]
+    assert steps
+    for c in check_gains(task, res, steps, eps=1e-6, seed=1):
+        assert c.converged and c.rel_error < 1e-3, (c.t, c.rel_error)

@@ -138,3 +138,26 @@ def test_ee_frame_is_tool0():
     assert task.model.frames[task.ee].name == "tool0"
     pin.framesForwardKinematics(task.model, task.data, Q_HOME)
     np.testing.assert_allclose(task.ee_position_np(Q_HOME), task.data.oMf[task.ee].translation)
+
+
+# ----------------------------------------------------------------------------- optimizer + gains
+def test_solution_and_gains_match_finite_differences():
+    """Short-horizon UR5 solve: reaches the target; K_t equals du_t/dx_t of the re-solved tail (FD)."""
+    from sdp_cli.trajopt import get_solver
+    from sdp_cli.trajopt.verify import check_dynamics_jacobians, check_gains
+
+    task = get_task("ur5-fixed", T=20)
+    xi = task.sample_xi(np.random.default_rng(0))
+    res = get_solver(task, solver="ipopt", tol=1e-10, jit=False).solve(xi, *task.naive_guess(xi))
+    assert res.converged, res.status
+    assert res.cost == pytest.approx(task.cost(res.X, res.U, xi), rel=1e-9)
+    gaps = [task.difference(task.step(res.X[t], res.U[t]), res.X[t + 1]) for t in range(task.T)]
+    assert np.abs(gaps).max() < 1e-8
+    assert task.goal_distance(res.X[-1], xi) < task.goal_distance(res.X[0], xi) / 2
+    assert not res.clamped.any()
+    errA, errB = check_dynamics_jacobians(task, res, [0, 10])
+    assert errA < 1e-6 and errB < 1e-6
+    checks = check_gains(task, res, [0, 12], eps=1e-5)
+    for c in checks:
+        assert c.converged and c.rel_error < 1e-4, (c.t, c.rel_error)
+        assert np.linalg.norm(c.du_K) > 1e-4  # a non-trivial direction
