@@ -226,3 +226,13 @@ def test_gains_with_active_column_constraint_match_finite_differences():
     assert steps
     for c in check_gains(task, res, steps, eps=1e-6, seed=1):
         assert c.converged and c.rel_error < 1e-3, (c.t, c.rel_error)
+
+
+def test_inverse_dynamics_of_diverged_states_is_nan():
+    task = get_task("quadrotor-0")
+    x = task.initial_state(task.sample_xi(np.random.default_rng(0)))
+    bad = x.copy()
+    bad[8] = np.nan
+    U = task.inverse_dynamics(np.stack([x, x]), np.stack([bad, task.step(x, task.u_hover)]))
+    assert np.all(np.isnan(U[0]))
+    np.testing.assert_allclose(U[1], task.u_hover, atol=1e-9)

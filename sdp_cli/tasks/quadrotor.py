@@ -92,11 +92,14 @@ def bounded_least_squares(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.n
 
     ``A (m, n)`` with full column rank, ``b (..., m)`` -> ``u (..., n)``. Enumerates the 3^n
     active sets (each variable free, at its lower or at its upper bound): the optimum of this
-    strictly convex QP is the feasible candidate of least residual.
+    strictly convex QP is the feasible candidate of least residual. Rows of ``b`` that are
+    not finite give NaN.
     """
     b = np.asarray(b, dtype=float)
     n = A.shape[1]
     flat = b.reshape(-1, A.shape[0])
+    bad = ~np.all(np.isfinite(flat), axis=1)
+    flat = np.where(bad[:, None], 0.0, flat)
     best_u = np.zeros((len(flat), n))
     best_r = np.full(len(flat), np.inf)
     for pattern in itertools.product((0, 1, 2), repeat=n):  # 0 free, 1 lower, 2 upper
@@ -107,10 +110,13 @@ def bounded_least_squares(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.n
             rhs = flat - u[:, ~free] @ A[:, ~free].T
             u[:, free] = rhs @ np.linalg.pinv(A[:, free]).T
         ok = np.all((u >= lb - 1e-12) & (u <= ub + 1e-12), axis=1)
-        r = np.sum((u @ A.T - flat) ** 2, axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            r = np.sum((u @ A.T - flat) ** 2, axis=1)
         better = ok & (r < best_r - 1e-15)
         best_u[better], best_r[better] = u[better], r[better]
-    return np.clip(best_u, lb, ub).reshape(b.shape[:-1] + (n,))
+    best_u = np.clip(best_u, lb, ub)
+    best_u[bad] = np.nan
+    return best_u.reshape(b.shape[:-1] + (n,))
 
 
 class QuadrotorTask(Task):
