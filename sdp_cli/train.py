@@ -122,7 +122,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             raise SdpError(f"--init checkpoint is a {init_cfg.method!r} policy, not {cfg.method!r}")
         cfg = TrainConfig.from_dict({**cfg.to_dict(), **{k: getattr(init_cfg, k) for k in ARCH_FIELDS}})
 
-    arrays, meta, task = load_dataset(data, require_gains=cfg.sobolev)
+    ref_task = (prev or init_ck or {}).get("task")
+    arrays, meta, task = load_dataset(data, require_gains=cfg.sobolev, task_name=ref_task)
     fingerprint = file_sha256(data)
     for ref, what in ((prev, "resumed run"), (init_ck, "--init checkpoint")):
         if ref is not None and ref["task"] != meta["task"]:

@@ -57,7 +57,7 @@ def make_trajectories(task, n_traj: int, seed: int = 0):
     for _ in range(n_traj):
         xi = task.sample_xi(rng)
         x0 = task.initial_state(xi)
-        amp = rng.uniform(2.0, 6.0, task.nu)
+        amp = rng.uniform(2.0, 6.0, task.nu) / task.nu ** 3   # keeps the double pendulum tame
         freq = rng.uniform(0.5, 2.0, task.nu)
         phase = rng.uniform(0, 2 * np.pi, task.nu)
         U = amp * np.sin(2 * np.pi * freq * t[:, None] + phase)

@@ -177,7 +177,7 @@ def test_bad_datasets(tmp_path, dataset):
     with pytest.raises(SdpError, match="no feedback gains"):
         load_dataset(nogain)
     load_dataset(nogain, require_gains=False)  # fine for DP / PDDP
-    with pytest.raises(SdpError, match="expected 'double_pendulum'"):
+    with pytest.raises(SdpError, match="does not match the policy's task 'double_pendulum'"):
         load_dataset(dataset, task_name="double_pendulum")
     arrays, meta = load_npz(dataset)
     with pytest.raises(SdpError, match="T_h"):

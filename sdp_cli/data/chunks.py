@@ -70,7 +70,8 @@ def load_dataset(path: str | Path, require_gains: bool = True, task_name: str | 
     if missing:
         raise SdpError(f"dataset {path} lacks arrays {', '.join(missing)}")
     if task_name is not None and meta.get("task") != task_name:
-        raise SdpError(f"dataset {path} is for task {meta.get('task')!r}, expected {task_name!r}")
+        raise SdpError(f"dataset {path} is for task {meta.get('task')!r}, which does not match the "
+                       f"policy's task {task_name!r}")
     task = task_for_dataset(meta)
     X, U, xi = arrays["X"], arrays["U"], arrays["xi"]
     N = len(X)

@@ -25,7 +25,7 @@ from torch.func import jvp
 
 
 def random_unit(shape: tuple, generator: torch.Generator | None = None, device=None,
-                dtype=torch.float32) -> torch.Tensor:
+                dtype=None) -> torch.Tensor:
     """Vectors uniform on the unit sphere over the trailing dims of ``shape[1:]`` (per row)."""
     v = torch.randn(shape, generator=generator, device=device, dtype=dtype)
     flat = v.reshape(shape[0], -1)
@@ -49,8 +49,12 @@ def sobolev_output_projection(f: Callable[[torch.Tensor], torch.Tensor], d_in: i
 
 
 def sobolev_input_projection(f: Callable[[torch.Tensor], torch.Tensor], d_in: int, J: torch.Tensor,
-                             n_proj: int = 1, generator: torch.Generator | None = None):
-    """``(y, mean_i (d_in/d_out) ||J w_i - df/d delta w_i||^2)`` by forward-mode JVPs."""
+                             n_proj: int = 1, generator: torch.Generator | None = None,
+                             f_jvp: Callable[[torch.Tensor], tuple] | None = None):
+    """``(y, mean_i (d_in/d_out) ||J w_i - df/d delta w_i||^2)`` by forward-mode JVPs.
+
+    ``f_jvp(w) -> (f(0), df/d delta (0) w)`` replaces ``torch.func.jvp(f, ...)`` when given
+    (e.g. the U-Net's hand-written tangent propagation)."""
     B = J.shape[0]
     delta = torch.zeros(B, d_in, device=J.device, dtype=J.dtype)
     Jf = J.reshape(B, -1, d_in)
@@ -59,16 +63,16 @@ def sobolev_input_projection(f: Callable[[torch.Tensor], torch.Tensor], d_in: in
     y = None
     for _ in range(n_proj):
         w = random_unit((B, d_in), generator, J.device, J.dtype)
-        y, ydot = jvp(f, (delta,), (w,))
+        y, ydot = f_jvp(w) if f_jvp is not None else jvp(f, (delta,), (w,))
         target = torch.einsum("boi,bi->bo", Jf, w)
         term = term + ((target - ydot.reshape(B, -1)) ** 2).sum(-1)
     return y, term * (d_in / d_out) / n_proj
 
 
-def sobolev_term(mode: str, f, d_in: int, J: torch.Tensor, n_proj: int = 1, generator=None):
+def sobolev_term(mode: str, f, d_in: int, J: torch.Tensor, n_proj: int = 1, generator=None, f_jvp=None):
     """Dispatch on ``mode``: "vjp" (output projection, eq. (6)) or "jvp" (input projection)."""
     if mode == "vjp":
         return sobolev_output_projection(f, d_in, J, n_proj, generator)
     if mode == "jvp":
-        return sobolev_input_projection(f, d_in, J, n_proj, generator)
+        return sobolev_input_projection(f, d_in, J, n_proj, generator, f_jvp)
     raise ValueError(f"unknown Sobolev mode {mode!r}")

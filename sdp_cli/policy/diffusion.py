@@ -53,6 +53,11 @@ class DiffusionNet(nn.Module):
     def forward(self, tau_k, k, xi_n, obs_n):
         return self.unet(tau_k, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1))
 
+    def forward_jvp(self, tau_k, tau_d, k, xi_n, obs_n, obs_d):
+        """``(y, dy)`` along tangents ``tau_d`` (or None) of ``tau_k`` and ``obs_d`` of ``obs_n``."""
+        cond_d = torch.cat([torch.zeros_like(xi_n), obs_d.flatten(1)], dim=-1)
+        return self.unet.forward_jvp(tau_k, tau_d, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1), cond_d)
+
 
 def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg: TrainConfig,
                    generator: torch.Generator | None = None, sobolev: bool = False):
@@ -82,8 +87,16 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
         a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
         return net(torch.cat([a, rest], dim=1), k, xi, o)[:, T_o:]
 
+    def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
+        o_d = torch.einsum("btoi,bi->bto", obs_jac, w)
+        tau_d = None
+        if a_hist_jac is not None:
+            tau_d = torch.cat([torch.einsum("btai,bi->bta", a_hist_jac, w), torch.zeros_like(rest)], dim=1)
+        y, yd = net.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
+        return y[:, T_o:], yd[:, T_o:]
+
     J = batch["jac"][:, T_o:]
-    pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator)
+    pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
     dp = ((pred - tau0[:, T_o:]) ** 2).mean()
     sob = term.mean()
     loss = dp + cfg.alpha_sobolev * sob

@@ -7,6 +7,12 @@ block by FiLM (per-channel scale and bias). Residual blocks are
 Conv1d -> GroupNorm -> Mish twice; the down path halves the time axis between levels
 (strided conv), the up path doubles it (transposed conv) and concatenates skip features.
 ``T_h`` must be divisible by ``2^(len(down_dims) - 1)``.
+
+:meth:`ConditionalUnet1D.forward_jvp` propagates a tangent alongside the primal by hand
+(linear layers run once on the primal and tangent stacked along the batch; GroupNorm and
+Mish use their closed-form derivatives). It returns the same ``(y, dy)`` as
+``torch.func.jvp`` (tested) but is plain reverse-differentiable ops, about twice as fast
+as torch's forward-mode AD here and compatible with ``torch.compile``.
 """
 
 from __future__ import annotations
@@ -15,6 +21,41 @@ import math
 
 import torch
 from torch import nn
+
+
+# ------------------------------------------------------- tangent propagation
+def _linear_t(layer: nn.Module, x: torch.Tensor, xd: torch.Tensor | None):
+    """A linear layer (Conv1d, ConvTranspose1d, Linear) on a primal and its tangent."""
+    if xd is None:
+        return layer(x), None
+    B = x.shape[0]
+    out = layer(torch.cat([x, xd], dim=0))
+    y, yd = out[:B], out[B:]
+    if layer.bias is not None:
+        yd = yd - (layer.bias[:, None] if yd.dim() == 3 else layer.bias)
+    return y, yd
+
+
+def _mish_t(x: torch.Tensor, xd: torch.Tensor | None):
+    t = torch.tanh(nn.functional.softplus(x))
+    y = x * t
+    if xd is None:
+        return y, None
+    return y, xd * (t + x * torch.sigmoid(x) * (1 - t * t))
+
+
+def _group_norm_t(gn: nn.GroupNorm, x: torch.Tensor, xd: torch.Tensor | None):
+    if xd is None:
+        return gn(x), None
+    B, C, L = x.shape
+    xg = x.reshape(B, gn.num_groups, -1)
+    var, mu = torch.var_mean(xg, dim=-1, keepdim=True, correction=0)
+    r = torch.rsqrt(var + gn.eps)
+    xhat = (xg - mu) * r
+    xdg = xd.reshape(B, gn.num_groups, -1)
+    xhat_d = r * (xdg - xdg.mean(-1, keepdim=True) - xhat * (xhat * xdg).mean(-1, keepdim=True))
+    w, b = gn.weight[:, None], gn.bias[:, None]
+    return xhat.reshape(B, C, L) * w + b, xhat_d.reshape(B, C, L) * w
 
 
 class StepEmbedding(nn.Module):
@@ -39,6 +80,10 @@ class ConvBlock(nn.Sequential):
         super().__init__(nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2),
                          nn.GroupNorm(n_groups, c_out), nn.Mish())
 
+    def forward_jvp(self, x, xd):
+        conv, gn, _ = self
+        return _mish_t(*_group_norm_t(gn, *_linear_t(conv, x, xd)))
+
 
 class FiLMResBlock(nn.Module):
     """Two conv blocks with FiLM conditioning between them, plus a residual path."""
@@ -56,6 +101,23 @@ class FiLMResBlock(nn.Module):
         scale, bias = self.film(cond).unsqueeze(-1).chunk(2, dim=1)
         h = self.block2(scale * h + bias)
         return h + self.residual(x)
+
+    def forward_jvp(self, x, xd, cond, cond_d):
+        h, hd = self.block1.forward_jvp(x, xd)
+        m, md = _mish_t(cond, cond_d)
+        f, fd = _linear_t(self.film[1], m, md)
+        scale, bias = f.unsqueeze(-1).chunk(2, dim=1)
+        g, gd = scale * h + bias, None
+        if fd is not None or hd is not None:
+            gd = 0
+            if fd is not None:
+                sd, bd = fd.unsqueeze(-1).chunk(2, dim=1)
+                gd = sd * h + bd
+            if hd is not None:
+                gd = gd + scale * hd
+        h, hd = self.block2.forward_jvp(g, gd)
+        r, rd = (x, xd) if isinstance(self.residual, nn.Identity) else _linear_t(self.residual, x, xd)
+        return h + r, (hd if rd is None else hd + rd)
 
 
 class ConditionalUnet1D(nn.Module):
@@ -96,3 +158,29 @@ class ConditionalUnet1D(nn.Module):
             x = torch.cat([x, skips.pop()], dim=1)
             x = up(r2(r1(x, c), c))
         return self.final(x).transpose(1, 2)
+
+    def forward_jvp(self, tau, tau_d, k, cond, cond_d):
+        """``(y, dy)``: the output and its derivative along tangents ``tau_d (B, T_h, A)`` of the
+        input and ``cond_d (B, n_cond)`` of the condition (either may be None = zero)."""
+        e = self.step_embed(k)
+        c = torch.cat([e, cond], dim=-1)
+        cd = None if cond_d is None else torch.cat([torch.zeros_like(e), cond_d], dim=-1)
+        x, xd = tau.transpose(1, 2), None if tau_d is None else tau_d.transpose(1, 2)
+        skips = []
+        for r1, r2, down in self.down:
+            x, xd = r2.forward_jvp(*r1.forward_jvp(x, xd, c, cd), c, cd)
+            skips.append((x, xd))
+            if not isinstance(down, nn.Identity):
+                x, xd = _linear_t(down, x, xd)
+        for r in self.mid:
+            x, xd = r.forward_jvp(x, xd, c, cd)
+        for r1, r2, up in self.up:
+            s, sd = skips.pop()
+            x = torch.cat([x, s], dim=1)
+            xd = None if xd is None and sd is None else torch.cat(
+                [torch.zeros_like(x[:, : x.shape[1] - s.shape[1]]) if xd is None else xd,
+                 torch.zeros_like(s) if sd is None else sd], dim=1)
+            x, xd = _linear_t(up, *r2.forward_jvp(*r1.forward_jvp(x, xd, c, cd), c, cd))
+        x, xd = self.final[0].forward_jvp(x, xd)
+        x, xd = _linear_t(self.final[1], x, xd)
+        return x.transpose(1, 2), None if xd is None else xd.transpose(1, 2)

@@ -1,0 +1,160 @@
+"""``sdp train``: all methods, checkpoints, metrics, resume after a kill, --init, --save-at, bad input."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.errors import SdpError
+from sdp_cli.policy import DiffusionPolicy, MLPPolicy, load_policy
+from sdp_cli.policy.checkpoint import load_checkpoint
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.train import train
+from synthetic_dataset import write_dataset
+
+T = 30
+TINY = dict(T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=32, mlp_hidden=[32, 32],
+            checkpoint_every_s=1e9)
+
+
+def cfg(method, **kw):
+    return TrainConfig(method=method, **{**TINY, **kw})
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("train")
+    return {"ok": write_dataset(d / "p.npz", "pendulum", n_traj=3, seed=0, T=T),
+            "nogain": write_dataset(d / "nogain.npz", "pendulum", n_traj=2, seed=1, T=T, drop=("K", "Phi")),
+            "double": write_dataset(d / "dp.npz", "double_pendulum", n_traj=2, seed=2, T=T)}
+
+
+def quiet(*_):
+    pass
+
+
+def rows(run):
+    with open(run / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("method", ["sdp", "dp", "pddp", "pddp_s"])
+def test_all_methods_train_and_load(data, tmp_path, method):
+    run = tmp_path / method
+    path = train(data["ok"], run, cfg(method, epochs=3), device="cpu", progress=False, log=quiet)
+    ck = load_checkpoint(path)
+    assert ck["finished"] and ck["step"] == ck["total_steps"] and ck["task"] == "pendulum"
+    assert len(ck["dataset"]["sha256"]) == 64 and ck["provenance"]["versions"]["torch"]
+    m = rows(run)
+    assert len(m) == ck["total_steps"]
+    assert set(m[0]) >= {"step", "loss", "sobolev", "lr", "wall_time"}
+    sob = [float(r["sobolev"]) for r in m]
+    assert (max(sob) > 0) == (method in ("sdp", "pddp_s"))
+    pol = load_policy(run)
+    B = 4
+    xi = np.tile(data_xi(data["ok"]), (B, 1))
+    x = xi.copy()
+    if method in ("sdp", "dp"):
+        assert isinstance(pol, DiffusionPolicy)
+        u_prev = np.full((B, 1), 0.5)
+        g = lambda: torch.Generator().manual_seed(3)
+        tau = pol.predict_chunk(xi, x, u_prev, generator=g())
+        assert tau.shape == (B, 8, 1)
+        np.testing.assert_allclose(tau[:, 0], u_prev, atol=1e-5)        # inpainted history
+        np.testing.assert_allclose(tau, pol.predict_chunk(xi, x, u_prev, generator=g()))  # seeded
+        tau2 = pol.predict_chunk(xi, x, u_prev, generator=g(), k_rollout=2)
+        assert tau2.shape == tau.shape and np.all(np.isfinite(tau2))
+    else:
+        assert isinstance(pol, MLPPolicy)
+        assert pol.act(x, xi).shape == (B, 1)
+
+
+def data_xi(path):
+    return np.load(path)["xi"][:1]
+
+
+def test_vjp_mode_and_state_action_train(data, tmp_path):
+    train(data["ok"], tmp_path / "a", cfg("sdp", epochs=2, sobolev_mode="vjp"), device="cpu", progress=False,
+          log=quiet)
+    train(data["ok"], tmp_path / "b", cfg("sdp", epochs=2, action="x"), device="cpu", progress=False, log=quiet)
+    pol = load_policy(tmp_path / "b")
+    x = np.load(data["ok"])["X"][0, :2]
+    tau = pol.predict_chunk(x, x, np.zeros((2, 1)), generator=torch.Generator().manual_seed(0))
+    assert tau.shape == (2, 8, 2)
+    np.testing.assert_allclose(tau[:, 0], x, atol=1e-5)   # a_hist = g(x_t) = x_t
+
+
+class Killed(Exception):
+    pass
+
+
+def test_resume_after_kill_is_bit_identical(data, tmp_path):
+    c = cfg("sdp", epochs=6, save_at=[2, 5])
+    ref = train(data["ok"], tmp_path / "ref", c, device="cpu", progress=False, log=quiet)
+
+    def kill(step):
+        if step == 3:
+            raise Killed
+    c_every = cfg("sdp", epochs=6, save_at=[2, 5], checkpoint_every_s=0.0)
+    with pytest.raises(Killed):
+        train(data["ok"], tmp_path / "run", c_every, device="cpu", progress=False, log=quiet, on_step=kill)
+    assert load_checkpoint(tmp_path / "run")["step"] == 3   # last checkpoint before the kill
+    with pytest.raises(SdpError, match="--resume"):
+        train(data["ok"], tmp_path / "run", c_every, device="cpu", progress=False, log=quiet)
+    got = train(data["ok"], tmp_path / "run", c_every, device="cpu", resume=True, progress=False, log=quiet)
+    a, b = load_checkpoint(ref), load_checkpoint(got)
+    for key in ("model", "ema_model"):
+        for k in a[key]:
+            torch.testing.assert_close(a[key][k], b[key][k], atol=0, rtol=0)
+    assert [r["step"] for r in rows(tmp_path / "run")] == [str(s) for s in range(1, 7)]
+    assert [r["loss"] for r in rows(tmp_path / "run")] == [r["loss"] for r in rows(tmp_path / "ref")]
+    assert (tmp_path / "run" / "epoch_2.pt").is_file() and (tmp_path / "run" / "epoch_5.pt").is_file()
+    assert load_checkpoint(tmp_path / "run" / "epoch_5.pt")["epoch"] == 5
+
+
+def test_init_keeps_weights_and_normalizer(data, tmp_path):
+    first = train(data["ok"], tmp_path / "first", cfg("pddp_s", epochs=2), device="cpu", progress=False, log=quiet)
+    # a second dataset with different ranges: the normalizer of --init must be kept
+    other = write_dataset(tmp_path / "other.npz", "pendulum", n_traj=2, seed=7, T=T)
+    second = train(other, tmp_path / "second", cfg("pddp_s", epochs=1, mlp_hidden=[64]), device="cpu",
+                   init=first, progress=False, log=quiet)
+    a, b = load_checkpoint(first), load_checkpoint(second)
+    for k in a["model"]:
+        if k.startswith("normalizer."):
+            torch.testing.assert_close(a["model"][k], b["model"][k])
+    assert b["config"]["mlp_hidden"] == [32, 32]    # architecture of the init checkpoint wins
+    assert b["init"] == str(first)
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_cli_train_and_bad_input(data, tmp_path):
+    r = invoke("train", "--data", data["nogain"], "--method", "sdp", "--epochs", 1, "--out", tmp_path / "x",
+               "--no-progress")
+    assert r.exit_code == 1 and "no feedback gains" in r.output and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
+    r = invoke("train", "--data", data["nogain"], "--method", "pddp_s", "--epochs", 1, "--out", tmp_path / "y",
+               "--no-progress")
+    assert r.exit_code == 1 and "no feedback gains" in r.output
+    r = invoke("train", "--data", data["nogain"], "--method", "dp", "--epochs", 1, "--out", tmp_path / "dp",
+               "--horizon", 8, "--batch-size", 16, "--no-progress")
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "dp" / "checkpoint.pt").is_file() and (tmp_path / "dp" / "metrics.csv").is_file()
+    # --init from a pendulum policy on a double-pendulum dataset: mismatched task
+    r = invoke("train", "--data", data["double"], "--method", "dp", "--epochs", 1, "--out", tmp_path / "z",
+               "--init", tmp_path / "dp", "--no-progress")
+    assert r.exit_code == 1 and "does not match" in r.output and len(r.output.strip().splitlines()) == 1
+    r = invoke("train", "--data", data["ok"], "--method", "foo", "--epochs", 1, "--out", tmp_path / "w")
+    assert r.exit_code == 1 and "method must be one of" in r.output
+    r = invoke("train", "--data", tmp_path / "missing.npz", "--method", "dp", "--epochs", 1, "--out", tmp_path / "v")
+    assert r.exit_code == 1 and "not found" in r.output
+    r = invoke("train", "--data", data["ok"], "--method", "dp", "--epochs", 1, "--out", tmp_path / "u",
+               "--horizon", 12)
+    assert r.exit_code == 1 and "divisible" in r.output
