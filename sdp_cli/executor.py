@@ -310,10 +310,22 @@ class DaskExecutor(Executor):
         return {"kind": self.kind, "workers": self.slots(), "scheduler": self.client.scheduler.address}
 
     def warm(self, fn, *args) -> None:
-        """``fn(*args)`` on every current worker (workers joining later build on first use)."""
-        for addr, err in self.client.run(fn, *args, on_error="return").items():
-            if isinstance(err, BaseException):
-                raise SdpError(f"dask worker {addr} failed to prepare ({error_status(err)})")
+        """``fn(*args)`` as one task per current worker, in parallel; an error is an SdpError.
+
+        Tasks rather than ``client.run``: a long build (JIT compilation) then runs in the
+        worker's thread, not in its event loop, and heartbeats go on. Workers that join
+        later build on first use. Catching a broken worker environment here keeps it from
+        being recorded as failed solves.
+        """
+        from distributed import wait
+
+        futs = {self.client.submit(fn, *args, workers=[addr], allow_other_workers=True, pure=False): addr
+                for addr in self.client.nthreads()}
+        with self.client.as_current():
+            wait(list(futs))
+        for f, addr in futs.items():
+            if f.status == "error":
+                raise SdpError(f"dask worker {addr} cannot build the solver ({error_status(f.exception())})")
 
     def run_on_workers(self, fn: Callable, *args) -> dict:
         """``{worker address: fn(*args)}`` on every worker process (``client.run``)."""

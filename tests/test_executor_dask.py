@@ -88,6 +88,11 @@ def test_dask_refine_matches_local(tmp_path, dask_ex):
     assert len(ra["X"]) >= 1
 
 
+def test_worker_that_cannot_build_is_an_error_before_any_solve(dask_ex):
+    with pytest.raises(SdpError, match="cannot build the solver .error: ValueError: three is not allowed"):
+        dask_ex.warm(executor_jobs.square_or_raise, 3)
+
+
 def test_bad_scheduler_address_is_a_clear_error():
     with pytest.raises(SdpError, match="cannot connect to the dask scheduler at tcp://127.0.0.1:9"):
         make_executor("dask", scheduler="tcp://127.0.0.1:9", connect_timeout=1)
