@@ -56,7 +56,7 @@ class RolloutConfig:
         return RolloutConfig(self.n, self.seed, 1, None)
 
 
-def test_xis(task: Task, n: int, seed: int) -> np.ndarray:
+def evaluation_xis(task: Task, n: int, seed: int) -> np.ndarray:
     """The fixed evaluation set ``(n, n_xi)``: disjoint from any training seed < TEST_SEED_BASE."""
     return np.stack([task.sample_xi(np.random.default_rng([TEST_SEED_BASE + int(seed), i])) for i in range(n)])
 
@@ -160,7 +160,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
         raise SdpError(f"policy {policy_path} was trained on task {policy.task_name!r}, not {task_name!r}")
     config = config.validate(policy)
     task = policy.task
-    xis = test_xis(task, config.n, config.seed)
+    xis = evaluation_xis(task, config.n, config.seed)
     t0 = time.perf_counter()
     with torch.no_grad():
         traj = rollout_policy(policy, xis, config, on_step=on_step)

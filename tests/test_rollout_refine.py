@@ -1,0 +1,126 @@
+"""Rollout (Algorithm 2), refine (ArgminCost) and evaluate on tiny trained pendulum policies."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.data.artifacts import load_npz
+from sdp_cli.data.collect import CollectConfig, collect
+from sdp_cli.errors import SdpError
+from sdp_cli.policy import load_policy
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.refine import WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, refine_instance
+from sdp_cli.rollout import RolloutConfig, instance_generators, rollout_policy, evaluation_xis
+from sdp_cli.train import train
+
+runner = CliRunner()
+TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "mlp_hidden": [32, 32], "batch_size": 32}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A pendulum dataset and tiny SDP / PDDP policies trained for a few steps."""
+    root = tmp_path_factory.mktemp("policies")
+    data, _ = collect(CollectConfig(task="pendulum", n_traj=3, seed=0), root / "data.npz", workers=1)
+    out = {"data": data}
+    for method in ("sdp", "pddp"):
+        cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **TINY, "method": method, "epochs": 3, "T_h": 8})
+        train(data, root / method, cfg, device="cpu", progress=False, log=lambda s: None)
+        out[method] = root / method
+    return out
+
+
+def test_t_a_and_k_rollout_are_validated(trained):
+    pol = load_policy(trained["sdp"])
+    assert RolloutConfig(n=2).validate(pol).t_a == pol.T_h - pol.T_o
+    with pytest.raises(SdpError, match="t_a must be in"):
+        RolloutConfig(n=2, t_a=pol.T_h).validate(pol)
+    with pytest.raises(SdpError, match="t_a must be in"):
+        RolloutConfig(n=2, t_a=0).validate(pol)
+    with pytest.raises(SdpError, match="k_rollout"):
+        RolloutConfig(n=2, k_rollout=pol.K + 1).validate(pol)
+    r = runner.invoke(app, ["rollout", "--policy", str(trained["sdp"]), "--out", "x.npz", "--t-a", "99"])
+    assert r.exit_code == 1 and "t_a must be in" in r.output
+
+
+def test_inpainting_keeps_the_history(trained):
+    pol = load_policy(trained["sdp"])
+    xi = evaluation_xis(pol.task, 4, 0)
+    u_prev = np.array([[1.5], [-2.0], [0.0], [7.0]])
+    tau = pol.predict_chunk(xi, xi, u_prev, generator=instance_generators(0, range(4)))
+    assert tau.shape == (4, pol.T_h, 1)
+    np.testing.assert_allclose(tau[:, 0], u_prev, atol=1e-4)  # torque control: a_hist = u_{t-1}
+
+
+def test_batched_and_one_by_one_rollouts_agree(trained):
+    pol = load_policy(trained["sdp"])
+    cfg = RolloutConfig(n=3, seed=5, t_a=4).validate(pol)
+    xis = evaluation_xis(pol.task, 3, 5)
+    with torch.no_grad():
+        batch = rollout_policy(pol, xis, cfg, generators=instance_generators(5, range(3)))
+        for i in range(3):
+            one = rollout_policy(pol, xis[i:i + 1], cfg, generators=instance_generators(5, [i]))
+            np.testing.assert_allclose(one["U"][0], batch["U"][i], atol=1e-3)
+            np.testing.assert_allclose(one["X"][0], batch["X"][i], atol=1e-3)
+    # the rollout obeys the task dynamics and the control bounds
+    X, U = batch["X"][0], batch["U"][0]
+    task = pol.task
+    assert np.all(np.abs(U) <= task.u_ub + 1e-12)
+    np.testing.assert_allclose(X[5], task.step(X[4], U[4]), atol=1e-9)
+
+
+def _cand(cost, converged):
+    return SimpleNamespace(cost=cost, converged=converged)
+
+
+def test_argmin_cost_keeps_the_cheapest_converged_candidate():
+    assert argmin_cost([_cand(5.0, True), _cand(3.0, True)]) == 1
+    assert argmin_cost([_cand(5.0, True), _cand(1.0, False)]) == 0   # non-converged never kept
+    assert argmin_cost([None, _cand(2.0, True)]) == 1
+    assert argmin_cost([_cand(1.0, False), None]) is None
+    assert argmin_cost([_cand(float("nan"), True), _cand(9.0, True)]) == 1
+
+
+def test_refine_instance_never_keeps_a_non_converged_solve(trained):
+    from sdp_cli.tasks import get_task
+
+    task = get_task("pendulum")
+    xi = evaluation_xis(task, 1, 0)[0]
+    X0, U0 = task.naive_guess(xi)
+    rec = refine_instance("pendulum", {}, xi, X0, U0, max_iter=1, baseline=True)
+    assert rec["winner"] == WIN_NONE and not bool(rec["converged"])
+    rec = refine_instance("pendulum", {}, xi, X0, U0, max_iter=1000, baseline=True)
+    assert rec["winner"] in (WIN_POLICY, WIN_BASELINE) and bool(rec["converged"])
+    best = min(c for c, ok in ((rec["pol_cost"], rec["pol_converged"]), (rec["base_cost"], rec["base_converged"])) if ok)
+    assert float(rec["cost"]) == pytest.approx(best)
+
+
+@pytest.mark.parametrize("method", ["sdp", "pddp"])
+def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
+    ro, rf, ev = tmp_path / "r.npz", tmp_path / "f.npz", tmp_path / "e.csv"
+    r = runner.invoke(app, ["rollout", "--policy", str(trained[method]), "--task", "pendulum", "--n", "3",
+                            "--seed", "1", "--out", str(ro)])
+    assert r.exit_code == 0, r.output
+    a, meta = load_npz(ro, kind="rollout")
+    assert a["X"].shape == (3, 101, 2) and a["cost"].shape == (3,) and meta["method"] == method
+    r = runner.invoke(app, ["refine", "--rollouts", str(ro), "--out", str(rf), "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    d, dmeta = load_npz(rf, kind="dataset")
+    assert d["K"].shape[1:] == (100, 1, 2) and len(d["inst_winner"]) == 3   # a training dataset
+    assert np.all(d["cost"] <= np.where(d["inst_base_converged"][d["index"]], d["inst_base_cost"][d["index"]], np.inf) + 1e-9)
+    r = runner.invoke(app, ["evaluate", "--rollouts", str(ro), "--refined", str(rf), "--out", str(ev),
+                            "--tag", "experiment=t"])
+    assert r.exit_code == 0, r.output
+    row = pd.read_csv(ev).iloc[0]
+    assert row["method"] == method and row["n"] == 3 and row["experiment"] == "t"
+    assert row["refined_cost_mean"] <= row["to_alone_cost_mean"] + 1e-9
+    r = runner.invoke(app, ["rollout", "--policy", str(trained[method]), "--task", "double_pendulum",
+                            "--out", str(tmp_path / "z.npz")])
+    assert r.exit_code == 1 and "trained on task 'pendulum'" in r.output
