@@ -249,6 +249,7 @@ def loop_cmd(
     horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h.")] = 32,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="T_a of the rollouts that warm-start collection (default T_h - T_o).")] = None,
     eval_t_a: Annotated[Optional[str], typer.Option("--eval-t-a", help="T_a values to evaluate, e.g. 1,4,8 (default: --t-a).")] = None,
+    eval_t_a_last: Annotated[Optional[str], typer.Option("--eval-t-a-last", help="Extra T_a values evaluated at the last iteration only (Table 2c), e.g. 1,2,3.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
     n_test: Annotated[int, typer.Option("--n-test", help="Test instances (fixed set from the test seed).")] = 50,
     test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
@@ -266,7 +267,8 @@ def loop_cmd(
     opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size)) if v is not None}
     cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),
                      epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
-                     eval_t_a=_int_list(eval_t_a, "--eval-t-a"), k_rollout=k_rollout, n_test=n_test,
+                     eval_t_a=_int_list(eval_t_a, "--eval-t-a"),
+                     eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), train_options=opts)
     summary = run_loop(cfg, out, log=typer.echo)

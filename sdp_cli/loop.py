@@ -41,6 +41,7 @@ class LoopConfig:
     horizon: int = 32              # T_h
     t_a: int | None = None         # T_a of the rollouts used to warm-start collection
     eval_t_a: tuple = ()           # T_a values evaluated on the test set (default: t_a)
+    eval_t_a_last: tuple = ()      # extra T_a values evaluated at the last iteration (Table 2c)
     k_rollout: int | None = None
     n_test: int = 50
     test_seed: int = 0
@@ -90,14 +91,17 @@ def _train_done(policy_dir: Path) -> bool:
 
 
 def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra: dict,
-                       log: Callable[[str], None]) -> pd.DataFrame:
+                       log: Callable[[str], None], last: bool = False) -> pd.DataFrame:
     """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a."""
     from sdp_cli.evaluate import evaluation_row, write_evaluation
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout
 
     rows = []
-    for t_a in cfg.eval_t_a or (cfg.t_a,):
+    t_as = list(cfg.eval_t_a or (cfg.t_a,))
+    if last:
+        t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
+    for t_a in t_as:
         tag = f"ta{t_a}" if t_a is not None else "ta-default"
         ro, rf = eval_dir / f"rollout_{tag}.npz", eval_dir / f"refined_{tag}.npz"
         if not ro.exists():
@@ -148,7 +152,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=False,
                   log=lambda s: None)
         log(f"[it{k}] evaluate on {cfg.n_test} test instances")
-        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"iteration": k, "loop_seed": cfg.seed}, log)
+        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"iteration": k, "loop_seed": cfg.seed}, log,
+                                last=k == cfg.n_algo - 1)
         tables.append(df)
         prev_policy = policy_dir
     summary = pd.concat(tables, ignore_index=True)
