@@ -104,3 +104,30 @@ def test_scheduler_and_sampling():
                        generator=torch.Generator().manual_seed(0))
     assert out.shape == (3, 8, 1)
     torch.testing.assert_close(out[:, :1], a_hist)
+
+
+def test_fused_tangent_ops_gradcheck():
+    from torch import nn
+
+    from sdp_cli.policy.tangent_ops import GroupNormJVP, MishJVP
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 4, 6, dtype=torch.float64, generator=g, requires_grad=True)
+    xd = torch.randn(2, 4, 6, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(MishJVP.apply, (x, xd))
+    w = torch.randn(4, dtype=torch.float64, generator=g, requires_grad=True)
+    b = torch.randn(4, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda *a: GroupNormJVP.apply(*a, 2, 1e-5), (x, xd, w, b))
+    # values agree with the library ops and torch.func.jvp
+    gn = nn.GroupNorm(2, 4).double()
+    with torch.no_grad():
+        gn.weight.copy_(w)
+        gn.bias.copy_(b)
+    y, yd = GroupNormJVP.apply(x, xd, w, b, 2, gn.eps)
+    y_ref, yd_ref = jvp(gn, (x,), (xd,))
+    torch.testing.assert_close(y, y_ref)
+    torch.testing.assert_close(yd, yd_ref)
+    y, yd = MishJVP.apply(x, xd)
+    y_ref, yd_ref = jvp(nn.functional.mish, (x,), (xd,))
+    torch.testing.assert_close(y, y_ref)
+    torch.testing.assert_close(yd, yd_ref)

@@ -1,0 +1,114 @@
+"""Time one training step of DP and SDP (and the Sobolev variants) in one run, print ratios.
+
+    python bench/train_step.py [--batch 256] [--horizon 32] [--rounds 12] [--threads N] [--data DATASET]
+
+A step is loss + backward + AdamW update on the default conditional U-Net ([24, 24, 32, 32]).
+Modes, measured interleaved (round-robin) so that machine load affects all alike; the
+median per mode is reported:
+
+- ``dp``            eq. (2) only;
+- ``sdp-vjp``       eq. (6) by double backward (projection on the output side): the naive baseline;
+- ``sdp-jvp-func``  projection on the x side, forward mode with ``torch.func.jvp``;
+- ``sdp-jvp``       projection on the x side, hand-written tangent propagation (the default).
+
+Without ``--data`` the batch is synthetic with the pendulum's sizes (A = 1, ndx = 2, xi (2),
+o = (x, u_prev) (3)); with ``--data`` it is drawn from the dataset's chunks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import torch
+
+from sdp_cli.losses import sobolev as sob
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.diffusion import DiffusionNet, diffusion_loss, make_scheduler
+
+
+def synthetic_batch(B, T_h, A=1, ndx=2, n_o=3, n_xi=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    b = {"tau0": torch.rand(B, T_h, A, generator=g) * 2 - 1, "obs": torch.rand(B, 1, n_o, generator=g) * 2 - 1,
+         "obs_jac": torch.randn(B, 1, n_o, ndx, generator=g), "xi": torch.rand(B, n_xi, generator=g) * 2 - 1,
+         "jac": torch.randn(B, T_h, A, ndx, generator=g)}
+    b["a_hist"] = b["tau0"][:, :1]
+    return b, {"n_action": A, "n_obs": n_o, "n_xi": n_xi, "ndx": ndx}
+
+
+def dataset_batch(path, B, T_h, seed=0):
+    from sdp_cli.data.chunks import ChunkDataset, fit_normalizer, load_dataset
+
+    arrays, _, task = load_dataset(path)
+    ds = ChunkDataset(task, arrays, T_h)
+    tens = ds.tensors(fit_normalizer(task, arrays, ds.action))
+    idx = torch.randint(0, len(ds), (B,), generator=torch.Generator().manual_seed(seed))
+    b = {k: v[idx] for k, v in tens.items()}
+    return b, {"n_action": b["tau0"].shape[-1], "n_obs": b["obs"].shape[-1], "n_xi": b["xi"].shape[-1],
+               "ndx": task.ndx}
+
+
+def make_step(mode, batch, dims, T_h):
+    method = "dp" if mode == "dp" else "sdp"
+    sob_mode = "vjp" if mode == "sdp-vjp" else "jvp"
+    cfg = TrainConfig(method=method, T_h=T_h, sobolev_mode=sob_mode)
+    torch.manual_seed(0)
+    net = DiffusionNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
+    sch = make_scheduler(cfg)
+    gen = torch.Generator().manual_seed(0)
+    orig = sob.sobolev_input_projection
+
+    def no_manual(f, d_in, J, n_proj=1, generator=None, f_jvp=None):
+        return orig(f, d_in, J, n_proj, generator, None)
+
+    def step():
+        if mode == "sdp-jvp-func":
+            sob.sobolev_input_projection = no_manual
+        try:
+            loss, _ = diffusion_loss(net, sch, batch, cfg, gen, sobolev=cfg.sobolev)
+        finally:
+            sob.sobolev_input_projection = orig
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+    return step, sum(p.numel() for p in net.parameters())
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--horizon", type=int, default=32)
+    ap.add_argument("--rounds", type=int, default=12)
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--modes", default="dp,sdp-vjp,sdp-jvp-func,sdp-jvp")
+    a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    batch, dims = (dataset_batch(a.data, a.batch, a.horizon) if a.data else synthetic_batch(a.batch, a.horizon))
+    modes = a.modes.split(",")
+    steps = {}
+    for m in modes:
+        steps[m], n_params = make_step(m, batch, dims, a.horizon)
+        steps[m]()   # warm-up
+    times = {m: [] for m in modes}
+    for _ in range(a.rounds):
+        for m in modes:
+            t = time.perf_counter()
+            steps[m]()
+            times[m].append(time.perf_counter() - t)
+    print(f"B={a.batch} T_h={a.horizon} params={n_params} torch={torch.__version__} threads={torch.get_num_threads()} "
+          f"cpus={os.cpu_count()} load={os.getloadavg()[0]:.1f} rounds={a.rounds}")
+    ref = statistics.median(times["dp"]) if "dp" in times else None
+    for m in modes:
+        med, lo = statistics.median(times[m]), min(times[m])
+        ratio = f"  ratio to dp {med / ref:.2f} (min-based {lo / min(times['dp']):.2f})" if ref else ""
+        print(f"{m:14s} median {med:.3f} s  min {lo:.3f} s{ratio}")
+
+
+if __name__ == "__main__":
+    main()
