@@ -67,7 +67,8 @@ def build_count() -> int:
 
 
 def _plugin_options(name: str, lay: Layout, max_iter: int, tol: float) -> dict:
-    opts = {"print_time": False, "error_on_fail": False, "equality": lay.equality().tolist()}
+    opts = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False,
+            "equality": lay.equality().tolist()}
     if name == "ipopt":
         opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
                          "acceptable_iter": 0}
@@ -105,6 +106,8 @@ class TrajOptSolver:
             self._nlpsol = ca.nlpsol(tag, solver, nlp, {**opts, "expand": True})
             self._gfun = gfun
         self.jitted = lib is not None
+        self._oracle = ca.external("nlp", lib) if lib is not None else \
+            ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]]).expand()
         lay = self.layout
         self._xi_, self._ui_ = lay.x_index(), lay.u_index()
         self._gap_i, self._init_i, self._h_i = lay.g_index()
@@ -149,9 +152,15 @@ class TrajOptSolver:
         U_init = self._array("U_init", U_init, (T, task.nu))
         w0 = self.layout.pack(X_init, U_init)
         w0[self._xi_[0]] = x0
+        p = np.concatenate([x0, xi])
         t0 = time.perf_counter()
+        f0, g0 = (np.asarray(v) for v in self._oracle(w0, p))
+        if not (np.all(np.isfinite(f0)) and np.all(np.isfinite(g0))):
+            # never start the solver there: fatrop's line search loops forever from a non-finite iterate
+            return self._failed(x0, xi, X_init, U_init, "not converged: the initial guess gives a non-finite "
+                                "cost or constraint (solver not started)", time.perf_counter() - t0)
         try:
-            r = self._nlpsol(x0=w0, p=np.concatenate([x0, xi]), lbx=self._lbx, ubx=self._ubx,
+            r = self._nlpsol(x0=w0, p=p, lbx=self._lbx, ubx=self._ubx,
                              lbg=self._lbg, ubg=self._ubg)
             stats = self._nlpsol.stats()
         except RuntimeError as e:  # evaluation errors: report, never raise
@@ -196,11 +205,10 @@ class TrajOptSolver:
                 "B": nan((T, ndx, nu), np.nan), "Phi": nan((T, ndx, ndx), np.nan)}
 
     def _failed(self, x0, xi, X, U, status, solve_time) -> SolveResult:
-        g = np.zeros(self.layout.ng)  # violation of the guess, evaluated without the solver
-        try:
-            g = np.asarray(self._nlpsol.get_function("nlp_g")(self.layout.pack(X, U), np.concatenate([x0, xi])))
+        try:  # violation of the guess, evaluated without the solver
+            g = np.asarray(self._oracle(self.layout.pack(X, U), np.concatenate([x0, xi]))[1])
         except RuntimeError:
-            g[:] = np.inf
+            g = np.full(self.layout.ng, np.inf)
         return SolveResult(X=X, U=U, cost=float("nan"), iterations=0, converged=False, solve_time=solve_time,
                            max_violation=self._violation(g.ravel(), U), status=status, **self._nan_gains(),
                            clamped=np.zeros((self.T, self.task.nu), dtype=bool),
