@@ -9,7 +9,8 @@ median per mode is reported:
 - ``dp``            eq. (2) only;
 - ``sdp-vjp``       eq. (6) by double backward (projection on the output side): the naive baseline;
 - ``sdp-jvp-func``  projection on the x side, forward mode with ``torch.func.jvp``;
-- ``sdp-jvp``       projection on the x side, hand-written tangent propagation (the default).
+- ``sdp-jvp``       projection on the x side, hand-written tangent propagation (the default);
+- ``sdp-jvp-half``  the same with ``sobolev_fraction = 0.5`` (Sobolev term on half of each batch).
 
 Without ``--data`` the batch is synthetic with the pendulum's sizes (A = 1, ndx = 2, xi (2),
 o = (x, u_prev) (3)); with ``--data`` it is drawn from the dataset's chunks.
@@ -53,7 +54,8 @@ def dataset_batch(path, B, T_h, seed=0):
 def make_step(mode, batch, dims, T_h):
     method = "dp" if mode == "dp" else "sdp"
     sob_mode = "vjp" if mode == "sdp-vjp" else "jvp"
-    cfg = TrainConfig(method=method, T_h=T_h, sobolev_mode=sob_mode)
+    cfg = TrainConfig(method=method, T_h=T_h, sobolev_mode=sob_mode,
+                      sobolev_fraction=0.5 if mode == "sdp-jvp-half" else 1.0)
     torch.manual_seed(0)
     net = DiffusionNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
     opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
@@ -85,7 +87,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--data", default=None)
-    ap.add_argument("--modes", default="dp,sdp-vjp,sdp-jvp-func,sdp-jvp")
+    ap.add_argument("--modes", default="dp,sdp-vjp,sdp-jvp-func,sdp-jvp,sdp-jvp-half")
     a = ap.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)

@@ -131,3 +131,25 @@ def test_fused_tangent_ops_gradcheck():
     y_ref, yd_ref = jvp(nn.functional.mish, (x,), (xd,))
     torch.testing.assert_close(y, y_ref)
     torch.testing.assert_close(yd, yd_ref)
+
+
+def test_forward_jvp_on_a_sub_batch():
+    """Tangents on the first n samples only (``sobolev_fraction``) give the same values and gradients."""
+    torch.manual_seed(0)
+    net = ConditionalUnet1D(action_dim=2, cond_dim=5, down_dims=(8, 16, 16), n_groups=4, step_embed_dim=8).double()
+    B, n = 5, 2
+    tau, cond = torch.randn(B, 16, 2, dtype=torch.float64), torch.randn(B, 5, dtype=torch.float64)
+    k = torch.tensor([0, 1, 3, 4, 2])
+    tau_d, cond_d = torch.randn_like(tau), torch.randn_like(cond)
+    y, yd = net.forward_jvp(tau, tau_d, k, cond, cond_d)
+    y2, yd2 = net.forward_jvp(tau, tau_d[:n], k, cond, cond_d[:n])
+    torch.testing.assert_close(y2, y)
+    torch.testing.assert_close(yd2, yd[:n])
+    g1 = torch.autograd.grad((yd[:n] ** 2).sum() + y.sum(), list(net.parameters()), allow_unused=True)
+    g2 = torch.autograd.grad((yd2 ** 2).sum() + y2.sum(), list(net.parameters()), allow_unused=True)
+    for p, a, b in zip(net.parameters(), g1, g2):
+        torch.testing.assert_close(torch.zeros_like(p) if a is None else a, torch.zeros_like(p) if b is None else b)
+    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_fraction=0.5)
+    loss, parts = diffusion_loss(DiffusionNet(cfg, 1, 3, 2, 2), make_scheduler(cfg), _batch(), cfg,
+                                 torch.Generator().manual_seed(0), sobolev=True)
+    assert torch.isfinite(loss) and parts["sobolev"] > 0

@@ -36,6 +36,7 @@ class TrainConfig:
     alpha_sobolev: float = 1.0
     n_proj: int = 1
     sobolev_mode: str = "jvp"        # "jvp": projection on the x side (forward mode); "vjp": eq. (6)
+    sobolev_fraction: float = 1.0    # jvp mode: share of each batch that gets the Sobolev term
     # optimization (diffusion policy defaults)
     lr: float = 1e-3
     weight_decay: float = 1e-6
@@ -56,6 +57,10 @@ class TrainConfig:
         for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
             if getattr(self, name) <= 0:
                 raise SdpError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.sobolev_fraction <= 1:
+            raise SdpError(f"sobolev_fraction must be in (0, 1], got {self.sobolev_fraction}")
+        if self.sobolev_fraction < 1 and self.sobolev_mode != "jvp":
+            raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
         if self.alpha_sobolev < 0:
             raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
         if self.is_diffusion:

@@ -55,7 +55,7 @@ class DiffusionNet(nn.Module):
 
     def forward_jvp(self, tau_k, tau_d, k, xi_n, obs_n, obs_d):
         """``(y, dy)`` along tangents ``tau_d`` (or None) of ``tau_k`` and ``obs_d`` of ``obs_n``."""
-        cond_d = torch.cat([torch.zeros_like(xi_n), obs_d.flatten(1)], dim=-1)
+        cond_d = torch.cat([torch.zeros_like(xi_n[: obs_d.shape[0]]), obs_d.flatten(1)], dim=-1)
         return self.unet.forward_jvp(tau_k, tau_d, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1), cond_d)
 
 
@@ -87,15 +87,19 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
         a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
         return net(torch.cat([a, rest], dim=1), k, xi, o)[:, T_o:]
 
+    # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
+    n_s = B if cfg.sobolev_mode == "vjp" else max(1, round(cfg.sobolev_fraction * B))
+
     def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
-        o_d = torch.einsum("btoi,bi->bto", obs_jac, w)
+        o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
         tau_d = None
         if a_hist_jac is not None:
-            tau_d = torch.cat([torch.einsum("btai,bi->bta", a_hist_jac, w), torch.zeros_like(rest)], dim=1)
+            tau_d = torch.cat([torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w), torch.zeros_like(rest[:n_s])],
+                              dim=1)
         y, yd = net.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
         return y[:, T_o:], yd[:, T_o:]
 
-    J = batch["jac"][:, T_o:]
+    J = batch["jac"][:n_s, T_o:]
     pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
     dp = ((pred - tau0[:, T_o:]) ** 2).mean()
     sob = term.mean()

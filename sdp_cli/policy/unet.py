@@ -38,16 +38,23 @@ def _linear_t(layer: nn.Module, x: torch.Tensor, xd: torch.Tensor | None):
     return y, yd
 
 
-def _mish_t(x: torch.Tensor, xd: torch.Tensor | None):
+def _sub_batch(op, fused, x, xd):
+    """Tangents may cover only the first ``xd.shape[0]`` samples of the batch."""
     if xd is None:
-        return nn.functional.mish(x), None
-    return mish_jvp(x, xd)
+        return op(x), None
+    n = xd.shape[0]
+    if n == x.shape[0]:
+        return fused(x, xd)
+    y, yd = fused(x[:n], xd)
+    return torch.cat([y, op(x[n:])], dim=0), yd
+
+
+def _mish_t(x: torch.Tensor, xd: torch.Tensor | None):
+    return _sub_batch(nn.functional.mish, mish_jvp, x, xd)
 
 
 def _group_norm_t(gn: nn.GroupNorm, x: torch.Tensor, xd: torch.Tensor | None):
-    if xd is None:
-        return gn(x), None
-    return group_norm_jvp(gn, x, xd)
+    return _sub_batch(gn, lambda a, b: group_norm_jvp(gn, a, b), x, xd)
 
 
 class StepEmbedding(nn.Module):
@@ -102,11 +109,12 @@ class FiLMResBlock(nn.Module):
         g, gd = scale * h + bias, None
         if fd is not None or hd is not None:
             gd = 0
+            n = (fd if fd is not None else hd).shape[0]   # tangents cover the first n samples
             if fd is not None:
                 sd, bd = fd.unsqueeze(-1).chunk(2, dim=1)
-                gd = sd * h + bd
+                gd = sd * h[:n] + bd
             if hd is not None:
-                gd = gd + scale * hd
+                gd = gd + scale[:n] * hd
         h, hd = self.block2.forward_jvp(g, gd)
         r, rd = (x, xd) if isinstance(self.residual, nn.Identity) else _linear_t(self.residual, x, xd)
         return h + r, (hd if rd is None else hd + rd)
@@ -152,11 +160,12 @@ class ConditionalUnet1D(nn.Module):
         return self.final(x).transpose(1, 2)
 
     def forward_jvp(self, tau, tau_d, k, cond, cond_d):
-        """``(y, dy)``: the output and its derivative along tangents ``tau_d (B, T_h, A)`` of the
-        input and ``cond_d (B, n_cond)`` of the condition (either may be None = zero)."""
+        """``(y, dy)``: the output and its derivative along tangents ``tau_d (n, T_h, A)`` of the
+        input and ``cond_d (n, n_cond)`` of the condition (either may be None = zero). The
+        tangents may cover only the first ``n <= B`` samples; then ``dy`` is ``(n, T_h, A)``."""
         e = self.step_embed(k)
         c = torch.cat([e, cond], dim=-1)
-        cd = None if cond_d is None else torch.cat([torch.zeros_like(e), cond_d], dim=-1)
+        cd = None if cond_d is None else torch.cat([torch.zeros_like(e[: cond_d.shape[0]]), cond_d], dim=-1)
         x, xd = tau.transpose(1, 2), None if tau_d is None else tau_d.transpose(1, 2)
         skips = []
         for r1, r2, down in self.down:
@@ -168,10 +177,11 @@ class ConditionalUnet1D(nn.Module):
             x, xd = r.forward_jvp(x, xd, c, cd)
         for r1, r2, up in self.up:
             s, sd = skips.pop()
+            if xd is not None or sd is not None:
+                n = (xd if xd is not None else sd).shape[0]
+                xd = torch.cat([torch.zeros_like(x[:n]) if xd is None else xd,
+                                torch.zeros_like(s[:n]) if sd is None else sd], dim=1)
             x = torch.cat([x, s], dim=1)
-            xd = None if xd is None and sd is None else torch.cat(
-                [torch.zeros_like(x[:, : x.shape[1] - s.shape[1]]) if xd is None else xd,
-                 torch.zeros_like(s) if sd is None else sd], dim=1)
             x, xd = _linear_t(up, *r2.forward_jvp(*r1.forward_jvp(x, xd, c, cd), c, cd))
         x, xd = self.final[0].forward_jvp(x, xd)
         x, xd = _linear_t(self.final[1], x, xd)
