@@ -6,8 +6,8 @@ Model: example-robot-data's ``hector`` (free-flyer base, m = 1.477 kg, no CoM of
 frame (nv = 6); state tangent ndx = 12 via Pinocchio's SE(3) ``integrate``/``difference``.
 
 Controls u = the 4 rotor thrusts [N], bounded ``0 <= u_i <= U_MAX = 6`` (hover: m g / 4 = 3.62 N,
-thrust-to-weight 1.66). Rotor geometry (constants of the hector model used by crocoddyl's and
-aligator's quadrotor examples): "+" layout, rotors 1..4 at ``ARM = 0.1525`` m along
+thrust-to-weight 1.66). Rotor geometry (the hector constants of crocoddyl's quadrotor
+example): "+" layout, rotors 1..4 at ``ARM = 0.1525`` m along
 +x, +y, -x, -y, drag-to-thrust ratio ``C_TAU = cm / cf = 1e-6 / 6.6e-5`` m, rotors 1, 3 spin
 so that their yaw torque is ``-C_TAU u``, rotors 2, 4 ``+C_TAU u``. The body wrench (force,
 torque) in the body frame (Pinocchio's generalized force of a free-flyer) is ``tau = ALLOC @ u``:
@@ -26,7 +26,10 @@ and ``R = r + R_QUAD``, ``R_QUAD = 0.4`` m (the bounding radius of hector's coll
 Layouts (cx, cy, r) in ``COLUMNS``: 1 = a column (0, 0, 0.5); 3 = a row x = 0 at
 y = -1.8, 0, 1.8 (r = 0.3); 9 = a 3x3 grid x, y in {-1.5, 0, 1.5}^2 (r = 0.2): 0.3 m wide corridors,
 so that the straight line from start to goal usually crosses a column. The layout is fixed
-per task name (not part of xi).
+per task name (not part of xi). The optimizer reports a solve as converged only if these
+constraints hold within its tolerance; its feedback gains treat the active ones as
+equalities (:mod:`sdp_cli.trajopt.gains`), checked against finite differences in
+``tests/test_tasks_quadrotor.py``.
 
 Task parameters ``xi = (x0 (13), p_goal (3))``, ``n_xi = 16``. T = 150 steps of dt = 0.02 s.
 Costs (summed per step, time-invariant; e = p - p_goal, rot = (qx, qy, qz), i.e.
