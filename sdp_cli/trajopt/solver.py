@@ -66,15 +66,19 @@ def build_count() -> int:
     return _BUILDS
 
 
-def _plugin_options(name: str, lay: Layout, max_iter: int, tol: float) -> dict:
+def _plugin_options(name: str, lay: Layout, max_iter: int, tol: float, viol_tol: float = 1e-6) -> dict:
+    """Solver options: silent, no "acceptable point" early exit (only ``tol`` counts as
+    success), unscaled constraint violation at success <= viol_tol / 10 (so that a solver
+    success always passes our own ``max_violation <= viol_tol`` check)."""
     opts = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False,
             "equality": lay.equality().tolist()}
+    common = {"print_level": 0, "max_iter": max_iter, "tol": tol, "acceptable_iter": 0,
+              "constr_viol_tol": 0.1 * viol_tol}
     if name == "ipopt":
-        opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
-                         "acceptable_iter": 0}
+        opts["ipopt"] = {**common, "sb": "yes"}
     else:
         opts.update(lay.fatrop_structure())
-        opts["fatrop"] = {"print_level": 0, "max_iter": max_iter, "tol": tol, "acceptable_iter": 0}
+        opts["fatrop"] = common
     return opts
 
 
@@ -88,7 +92,7 @@ class TrajOptSolver:
         self.task, self.T, self.solver_name = task, int(horizon), solver
         self.max_iter, self.tol, self.viol_tol = int(max_iter), float(tol), float(viol_tol)
         nlp, self.layout = build_nlp(task, self.T)
-        opts = _plugin_options(solver, self.layout, self.max_iter, self.tol)
+        opts = _plugin_options(solver, self.layout, self.max_iter, self.tol, self.viol_tol)
         blocks = stage_blocks(task)
         jac_f, hess_stage, hess_term, _ = blocks
         gfun = {"jac_f_map": jac_f.map(self.T), "hess_stage_map": hess_stage.map(self.T),
