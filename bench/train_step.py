@@ -12,6 +12,9 @@ median per mode is reported:
 - ``sdp-jvp``       projection on the x side, hand-written tangent propagation (the default);
 - ``sdp-jvp-half``  the same with ``sobolev_fraction = 0.5`` (Sobolev term on half of each batch).
 
+Wall time and process CPU time are both reported; on a shared machine the CPU-time ratios
+(with ``--threads 1``) are the stable ones.
+
 Without ``--data`` the batch is synthetic with the pendulum's sizes (A = 1, ndx = 2, xi (2),
 o = (x, u_prev) (3)); with ``--data`` it is drawn from the dataset's chunks.
 """
@@ -98,18 +101,22 @@ def main():
         steps[m], n_params = make_step(m, batch, dims, a.horizon)
         steps[m]()   # warm-up
     times = {m: [] for m in modes}
+    cpu = {m: [] for m in modes}
     for _ in range(a.rounds):
         for m in modes:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             steps[m]()
             times[m].append(time.perf_counter() - t)
+            cpu[m].append(time.process_time() - c)
     print(f"B={a.batch} T_h={a.horizon} params={n_params} torch={torch.__version__} threads={torch.get_num_threads()} "
           f"cpus={os.cpu_count()} load={os.getloadavg()[0]:.1f} rounds={a.rounds}")
     ref = statistics.median(times["dp"]) if "dp" in times else None
+    cref = statistics.median(cpu["dp"]) if "dp" in cpu else None
     for m in modes:
-        med, lo = statistics.median(times[m]), min(times[m])
+        med, lo, cmed = statistics.median(times[m]), min(times[m]), statistics.median(cpu[m])
         ratio = f"  ratio to dp {med / ref:.2f} (min-based {lo / min(times['dp']):.2f})" if ref else ""
-        print(f"{m:14s} median {med:.3f} s  min {lo:.3f} s{ratio}")
+        cratio = f"  ratio {cmed / cref:.2f}" if cref else ""
+        print(f"{m:14s} wall: median {med:.3f} s  min {lo:.3f} s{ratio} | CPU time: median {cmed:.3f} s{cratio}")
 
 
 if __name__ == "__main__":
