@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 import os
 import shutil
 import subprocess
@@ -27,6 +28,8 @@ import warnings
 from pathlib import Path
 
 import casadi as ca
+
+log = logging.getLogger(__name__)
 
 #: compiler command (the source and output paths are appended)
 CFLAGS = ("-O2", "-fPIC", "-shared")
@@ -77,6 +80,7 @@ def compile_functions(name: str, functions: list[ca.Function]) -> ca.Importer | 
         out_dir = cache_dir() / "jit"
         lib = out_dir / f"{name}_{key}.so"
         if not lib.is_file():
+            log.info("compiling %s (%.1f MB of C, one-off; cached as %s)", name, len(code) / 1e6, lib)
             try:
                 out_dir.mkdir(parents=True, exist_ok=True)
                 fd, tmp_lib = tempfile.mkstemp(prefix=f".{lib.name}.", suffix=".tmp", dir=out_dir)
