@@ -121,6 +121,7 @@ def main(argv=None) -> int:
 
     print(f"# sdp trajopt bench: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, "
           f"SDP_CACHE_DIR={os.environ.get('SDP_CACHE_DIR', '~/.cache/sdp')}", flush=True)
+    print("# " + " | ".join(HEADER), flush=True)
     rows = []
     for name in [t for t in args.tasks.split(",") if t]:
         variants = [(task_from_label(name), name)]
@@ -152,7 +153,6 @@ def fmt_row(r: dict) -> str:
 
 
 def print_ratios(rows) -> None:
-    print("# " + " | ".join(HEADER))
     by = {(r["task"], r["solver"]): r for r in rows}
     for task in dict.fromkeys(r["task"] for r in rows):
         a, b = by.get((task, "ipopt")), by.get((task, "fatrop"))
