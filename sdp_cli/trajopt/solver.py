@@ -59,6 +59,10 @@ class SolveResult:
 
 
 _BUILDS = 0
+#: fatrop's IpSolverReturnFlag, in order (casadi reports only the number)
+_FATROP_FLAGS = ("Success", "MaxIterExceeded", "StopAtTinyStep", "StopAtAcceptablePoint", "LocalInfeasibility",
+                 "FeasiblePointFound", "DivergingIterates", "ErrorInStepComputation", "InvalidOption",
+                 "InternalError", "Unknown")
 
 
 def build_count() -> int:
@@ -178,6 +182,9 @@ class TrajOptSolver:
         success = bool(stats.get("success", False))
         converged = success and viol <= self.viol_tol and bool(np.all(np.isfinite(w)))
         raw = stats.get("return_status", "?")
+        if self.solver_name == "fatrop":
+            flag = stats.get("fatrop", {}).get("return_flag", -1)
+            raw = _FATROP_FLAGS[flag] if 0 <= flag < len(_FATROP_FLAGS) else f"return flag {flag}"
         if converged:
             status = "converged"
         elif not success:
