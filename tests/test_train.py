@@ -15,7 +15,7 @@ from sdp_cli.policy import DiffusionPolicy, MLPPolicy, load_policy
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.train import train
-from synthetic_dataset import write_dataset
+from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
 
 T = 30
 TINY = dict(T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=32, mlp_hidden=[32, 32],
@@ -94,16 +94,16 @@ class Killed(Exception):
 
 
 def test_resume_after_kill_is_bit_identical(data, tmp_path):
-    c = cfg("sdp", epochs=6, save_at=[2, 5])
+    c = cfg("sdp", epochs=4, save_at=[2, 3])
     ref = train(data["ok"], tmp_path / "ref", c, device="cpu", progress=False, log=quiet)
 
     def kill(step):
-        if step == 3:
+        if step == 2:
             raise Killed
-    c_every = cfg("sdp", epochs=6, save_at=[2, 5], checkpoint_every_s=0.0)
+    c_every = cfg("sdp", epochs=4, save_at=[2, 3], checkpoint_every_s=0.0)
     with pytest.raises(Killed):
         train(data["ok"], tmp_path / "run", c_every, device="cpu", progress=False, log=quiet, on_step=kill)
-    assert load_checkpoint(tmp_path / "run")["step"] == 3   # last checkpoint before the kill
+    assert load_checkpoint(tmp_path / "run")["step"] == 2   # last checkpoint before the kill
     with pytest.raises(SdpError, match="--resume"):
         train(data["ok"], tmp_path / "run", c_every, device="cpu", progress=False, log=quiet)
     got = train(data["ok"], tmp_path / "run", c_every, device="cpu", resume=True, progress=False, log=quiet)
@@ -111,10 +111,10 @@ def test_resume_after_kill_is_bit_identical(data, tmp_path):
     for key in ("model", "ema_model"):
         for k in a[key]:
             torch.testing.assert_close(a[key][k], b[key][k], atol=0, rtol=0)
-    assert [r["step"] for r in rows(tmp_path / "run")] == [str(s) for s in range(1, 7)]
+    assert [r["step"] for r in rows(tmp_path / "run")] == [str(s) for s in range(1, 5)]
     assert [r["loss"] for r in rows(tmp_path / "run")] == [r["loss"] for r in rows(tmp_path / "ref")]
-    assert (tmp_path / "run" / "epoch_2.pt").is_file() and (tmp_path / "run" / "epoch_5.pt").is_file()
-    assert load_checkpoint(tmp_path / "run" / "epoch_5.pt")["epoch"] == 5
+    assert (tmp_path / "run" / "epoch_2.pt").is_file() and (tmp_path / "run" / "epoch_3.pt").is_file()
+    assert load_checkpoint(tmp_path / "run" / "epoch_3.pt")["epoch"] == 3
 
 
 def test_init_keeps_weights_and_normalizer(data, tmp_path):
