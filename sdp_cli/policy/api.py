@@ -25,7 +25,7 @@ class Policy:
         self.method = self.config.method
         self.action = ck["action"]
         self.task: Task = get_task(ck["task"], **(ck.get("task_options") or {}))
-        if self.is_diffusion_method(self.config):
+        if self.config.is_diffusion:   # the policy's action variable may differ from the task's default
             self.task = task_with_action(self.task, self.action)
         self.task_name = ck["task"]
         self.checkpoint_epoch = ck.get("epoch")
@@ -33,10 +33,6 @@ class Policy:
         self.net = net_from_checkpoint(ck, use_ema).to(self.device).eval()
         self.norm = self.net.normalizer
         self.is_diffusion = self.config.is_diffusion
-
-    @staticmethod
-    def is_diffusion_method(cfg: TrainConfig) -> bool:
-        return cfg.is_diffusion
 
     def _obs(self, x: np.ndarray, u_prev: np.ndarray) -> torch.Tensor:
         """Normalized ``o = (obs(x), u_prev)``: (B, nx), (B, nu) -> (B, n_o)."""
