@@ -197,6 +197,7 @@ def train_cmd(
     lr: Annotated[float, typer.Option(help="Peak AdamW learning rate (cosine schedule with warm-up).")] = 1e-3,
     horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h (diffusion methods).")] = 32,
     diffusion_steps: Annotated[int, typer.Option("--diffusion-steps", help="DDPM steps K.")] = 5,
+    down_dims: Annotated[str, typer.Option("--down-dims", help="U-Net hidden dims, comma-separated.")] = "24,24,32,32",
     alpha_sobolev: Annotated[float, typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = 1.0,
     n_proj: Annotated[int, typer.Option("--n-proj", help="Random projections per sample.")] = 1,
     sobolev_mode: Annotated[str, typer.Option("--sobolev-mode", help="jvp: project on the state side (forward mode, default); vjp: eq. (6), project on the output side.")] = "jvp",
@@ -214,8 +215,12 @@ def train_cmd(
 
     try:
         save = [int(s) for s in save_at.split(",") if s.strip()] if save_at else []
+        dims = [int(s) for s in down_dims.split(",") if s.strip()]
     except ValueError:
-        raise SdpError(f"--save-at must be comma-separated integers, got {save_at!r}") from None
+        raise SdpError(f"--save-at and --down-dims must be comma-separated integers, got {save_at!r}, "
+                       f"{down_dims!r}") from None
+    if not dims or min(dims) <= 0:
+        raise SdpError(f"--down-dims must be positive integers, got {down_dims!r}")
     if threads is not None:
         if threads <= 0:
             raise SdpError(f"--threads must be > 0, got {threads}")
@@ -223,7 +228,7 @@ def train_cmd(
         torch.set_num_threads(threads)
     cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
                       K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
-                      sobolev_fraction=sobolev_fraction, action=action, save_at=save)
+                      sobolev_fraction=sobolev_fraction, action=action, save_at=save, down_dims=dims)
     path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
     typer.echo(f"wrote {path}")
 
