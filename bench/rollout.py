@@ -37,7 +37,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=50)
     ap.add_argument("--t-a", type=int, default=9)
     ap.add_argument("--k-rollout", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as `sdp rollout`)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

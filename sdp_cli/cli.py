@@ -107,10 +107,17 @@ def rollout_cmd(
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
     device: Annotated[str, typer.Option(help="cpu, cuda or auto.")] = "cpu",
+    threads: Annotated[int, typer.Option(help="torch CPU threads (the U-Net is tiny: 1 is fastest on a busy or 2-core CPU).")] = 1,
 ) -> None:
     """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
+    import torch
+
     from sdp_cli.rollout import RolloutConfig, rollout
     from sdp_cli.train import resolve_device
+
+    if threads <= 0:
+        raise SdpError(f"--threads must be > 0, got {threads}")
+    torch.set_num_threads(threads)
 
     path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
                       task_name=task, device=str(resolve_device(device)))
