@@ -84,7 +84,9 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             ax.annotate("∞", (n, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
     if np.isfinite(to[0]):
         ax.axhline(to[0], color="black", ls=":", label="TO alone")
+    n_all = tab["n_traj"].astype(float)
     ax.set_xscale("log")
+    ax.set_xlim(n_all.min() / 1.5, n_all.max() * 1.5)  # also when every mean diverged (no point drawn)
     ax.set_ylim(0, top * 1.05)
     ax.set_xlabel("n_traj (trajectories in the dataset)")
     ax.set_ylabel("mean cost on test instances")
