@@ -148,8 +148,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         mean_base_iterations=float(np.mean(out_arrays["inst_base_iterations"])) if baseline else float("nan"),
         mean_pol_time=float(np.mean(out_arrays["inst_pol_time"])),
         mean_base_time=float(np.mean(out_arrays["inst_base_time"])) if baseline else float("nan"))
-    dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
-            "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
+    dims = task.dims()
     path = save_npz(out, out_arrays, kind="dataset",
                     config={"rollouts": str(rollouts), "max_iter": max_iter, "baseline": baseline,
                             "workers": described.get("workers"),

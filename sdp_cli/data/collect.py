@@ -341,8 +341,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     extra = ("winner", "pol_cost", "pol_iterations", "base_cost", "base_iterations") if config.policy else ()
     arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index") + extra}
     arrays["converged"] = arrays["converged"].astype(bool)
-    dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,
-            "n_xi": task.n_xi, "T": task.T, "dt": task.dt}
+    dims = task.dims()
     path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": described.get("workers"),
                                                        "executor": described},
                     task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,

@@ -70,6 +70,11 @@ class Task(ABC):
     def ndx(self) -> int:
         return 2 * self.nv
 
+    def dims(self) -> dict:
+        """Dimensions recorded in every dataset artifact (``meta["dims"]``)."""
+        return {"nq": self.nq, "nv": self.nv, "nx": self.nx, "ndx": self.ndx, "nu": self.nu,
+                "n_xi": self.n_xi, "T": self.T, "dt": self.dt}
+
     def params(self) -> dict:
         """Everything that defines this task instance (stored in artifacts)."""
         return {"name": self.name, "dt": self.dt, "T": self.T}
