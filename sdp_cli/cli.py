@@ -270,6 +270,8 @@ def loop_cmd(
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     workers: Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "cpu",
+    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
 ) -> None:
@@ -283,7 +285,8 @@ def loop_cmd(
                      eval_t_a=_int_list(eval_t_a, "--eval-t-a"),
                      eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
-                     device=str(resolve_device(device)), train_options=opts)
+                     device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
+                     train_options=opts)
     summary = run_loop(cfg, out, log=typer.echo)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "to_alone_cost_mean",
                         "success_rate") if c in summary]

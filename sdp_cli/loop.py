@@ -13,7 +13,10 @@ For iteration ``k = 0 .. n_algo-1`` in ``OUT/it<k>/``:
 
 Every stage writes its artifact atomically, so "the artifact exists" means "the stage is
 done": re-running the same command after a kill continues from the last finished stage
-(training itself resumes from its last checkpoint).
+(training itself resumes from its last checkpoint). ``OUT/loop_config.json`` records the
+settings; resuming with other settings (other than ``RESUMABLE_FIELDS``: more iterations,
+more evaluated T_a, where the work runs) is refused rather than mixed into one folder.
+Solves run on the executor of ``executor``/``workers``/``scheduler`` (local pool or Dask).
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ class LoopConfig:
     max_iter: int = 1000
     workers: int | None = None
     device: str = "cpu"
+    executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
+    scheduler: str | None = None   # address of a running Dask scheduler
     train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
 
     def __post_init__(self):
@@ -60,12 +65,37 @@ class LoopConfig:
             raise SdpError(f"epochs must be > 0, got {self.epochs}")
         if self.n_test <= 0:
             raise SdpError(f"n_test must be > 0, got {self.n_test}")
+        from sdp_cli.executor import check_executor_options
+
+        check_executor_options(self.executor, self.workers, self.scheduler)
 
     def n_traj_at(self, k: int) -> int:
         return int(self.n_traj[min(k, len(self.n_traj) - 1)])
 
     def collect_seed(self, k: int) -> int:
         return 1000 * self.seed + k
+
+
+# settings that may change when a loop is resumed (where it runs, how much is evaluated)
+RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler")
+
+
+def check_resume(cfg: LoopConfig, out: Path) -> None:
+    """Refuse to resume ``out`` with settings that would mix two experiments in one folder."""
+    import json
+
+    path = out / "loop_config.json"
+    if not path.exists():
+        return
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise SdpError(f"corrupt loop config {path}: {e}") from None
+    new = json.loads(pd.Series(asdict(cfg)).to_json())
+    bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
+    if bad:
+        diffs = ", ".join(f"{k}={old[k]!r} (now {new[k]!r})" for k in bad)
+        raise SdpError(f"{out} holds a loop run with other settings: {diffs}; use another --out")
 
 
 def merge_datasets(paths: list[Path], out: Path) -> Path:
@@ -109,7 +139,8 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                                                          k_rollout=cfg.k_rollout), device=cfg.device)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
         if not rf.exists():
-            refine(ro, rf, max_iter=cfg.max_iter, workers=cfg.workers)
+            refine(ro, rf, max_iter=cfg.max_iter, workers=cfg.workers, executor=cfg.executor or "local",
+                   scheduler=cfg.scheduler)
         rows.append(evaluation_row(ro, rf, extra))
     df = pd.DataFrame(rows)
     write_evaluation(rows, eval_dir / "eval.csv")
@@ -124,6 +155,9 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    check_resume(cfg, out)
+    atomic_write_bytes(out / "loop_config.json",
+                       lambda f: f.write(pd.Series(asdict(cfg)).to_json(indent=2).encode()))
     tables, prev_policy, datasets = [], None, []
     for k in range(cfg.n_algo):
         d = out / f"it{k}"
@@ -136,7 +170,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                                  policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
                                  t_a=cfg.t_a if prev_policy else None,
                                  k_rollout=cfg.k_rollout if prev_policy else None)
-            collect(ccfg, data, workers=cfg.workers)
+            collect(ccfg, data, workers=cfg.workers, executor=cfg.executor or "local", scheduler=cfg.scheduler)
         datasets.append(data)
         train_data = data
         if not cfg.reset_buffer and k > 0:
@@ -158,6 +192,4 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
         prev_policy = policy_dir
     summary = pd.concat(tables, ignore_index=True)
     atomic_write_bytes(out / "summary.csv", lambda f: f.write(summary.to_csv(index=False).encode()))
-    atomic_write_bytes(out / "loop_config.json",
-                       lambda f: f.write(pd.Series(asdict(cfg)).to_json(indent=2).encode()))
     return summary

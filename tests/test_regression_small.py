@@ -65,6 +65,8 @@ def test_small_experiment_report(small_repro):
                  "table2c_pendulum.csv", "table2c_pendulum.md", "traj_pendulum.png"):
         assert (res / name).is_file(), name
     assert "small" in (res / "README.md").read_text()
+    top = (small_repro / "results" / "README.md").read_text()
+    assert "[small](small/README.md)" in top
     # a second `dvc repro` has nothing left to do
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     r = subprocess.run(["dvc", "status"], cwd=small_repro, env=env, capture_output=True, text=True)

@@ -9,7 +9,12 @@ Per task found under ``--runs`` (file names carry the task):
 - ``table2c_<task>``: the T_a trade-off (policy cost, refined cost, TO iterations, rollout,
   solving and total time, TO-alone columns) at the last iteration, CSV and markdown;
 - ``traj_<task>``: trajectories of a few test instances, TO alone vs policy vs refined;
-- ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets).
+- ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets; a
+  hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
+
+When the output folder sits in a folder named ``results`` (``results/<experiment>``), the
+top index ``results/README.md`` is rewritten too: one line per experiment folder with the
+commit that produced it.
 """
 
 from __future__ import annotations
@@ -226,7 +231,23 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         for fn in (fig1, fig2a, fig2b, table2c, trajectories):
             written += fn(df, task, out)
     written.append(_index(df, runs, out, experiment, written))
+    if out.resolve().parent.name == "results":
+        written.append(_top_index(out.resolve().parent))
     return written
+
+
+def _top_index(results: Path) -> Path:
+    """``results/README.md``: each experiment folder's index, with the commit that produced it."""
+    lines = ["# Results", "", "One folder per experiment, written by `sdp report` from real runs. Each folder's",
+             "README.md names the runs, the commit, and the seeds and budgets of every file in it.", "",
+             "| experiment | produced at commit | files |", "|---|---|---|"]
+    for sub in sorted(p for p in results.iterdir() if (p / "README.md").is_file()):
+        text = (sub / "README.md").read_text()
+        commit = next((ln.split("commit `")[1].split("`")[0] for ln in text.splitlines()
+                       if "at commit `" in ln), "unknown")
+        n_files = sum(1 for f in sub.iterdir() if f.is_file() and f.name != "README.md")
+        lines.append(f"| [{sub.name}]({sub.name}/README.md) | `{commit}` | {n_files} |")
+    return atomic_write_bytes(results / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
 
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path]) -> Path:
@@ -244,4 +265,6 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
     lines += ["", "## Files", ""]
     lines += [f"- `{p.name}`" for p in files if p.parent == out]
+    if (out / "NOTES.md").is_file():
+        lines += ["", "Notes on this run (how it was run, what did not finish): [NOTES.md](NOTES.md)."]
     return atomic_write_bytes(out / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))

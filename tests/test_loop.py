@@ -1,0 +1,57 @@
+"""`sdp loop` (Algorithm 1 end to end): artifacts per iteration, resume, settings guard."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.data.artifacts import load_npz
+
+runner = CliRunner()
+
+
+def _loop(out, *extra):
+    return runner.invoke(app, ["loop", "--task", "pendulum", "--method", "sdp", "--n-algo", "2", "--n-traj", "3",
+                               "--epochs", "2", "--horizon", "8", "--t-a", "4", "--n-test", "3", "--workers", "1",
+                               "--batch-size", "16", "--out", str(out), *extra])
+
+
+@pytest.fixture(scope="module")
+def loop_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("loop") / "run"
+    r = _loop(out)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_loop_writes_every_iteration(loop_dir):
+    for k in (0, 1):
+        for name in ("data.npz", "policy/checkpoint.pt", "eval/rollout_ta4.npz", "eval/refined_ta4.npz",
+                     "eval/eval.csv"):
+            assert (loop_dir / f"it{k}" / name).is_file(), f"it{k}/{name}"
+    summary = pd.read_csv(loop_dir / "summary.csv")
+    assert list(summary.iteration) == [0, 1] and (summary.n == 3).all() and (summary.t_a == 4).all()
+    # iteration 0 collects from the naive guess, iteration 1 warm-starts TO with iteration 0's policy
+    _, m0 = load_npz(loop_dir / "it0" / "data.npz", kind="dataset")
+    _, m1 = load_npz(loop_dir / "it1" / "data.npz", kind="dataset")
+    assert m0["config"]["policy"] is None
+    assert m1["config"]["policy"] == str(loop_dir / "it0" / "policy") and m1["config"]["t_a"] == 4
+    assert m0["config"]["seed"] != m1["config"]["seed"]
+
+
+def test_loop_resume_recomputes_nothing_and_refuses_other_settings(loop_dir):
+    files = [p for p in loop_dir.rglob("*") if p.is_file() and p.suffix in (".npz", ".pt")]
+    before = {p: p.stat().st_mtime_ns for p in files}
+    r = _loop(loop_dir)
+    assert r.exit_code == 0, r.output
+    assert {p: p.stat().st_mtime_ns for p in files} == before
+    r = _loop(loop_dir, "--seed", "3")
+    assert r.exit_code == 1 and "other settings" in r.output and "seed=0" in r.output
+
+
+def test_loop_executor_options_are_validated(tmp_path):
+    r = _loop(tmp_path / "x", "--executor", "mpi")
+    assert r.exit_code == 1 and "unknown executor 'mpi'" in r.output
+    assert not (tmp_path / "x").exists()
