@@ -29,6 +29,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=1)
     args = ap.parse_args()
 
+    import torch
+
+    torch.set_num_threads(1)  # the U-Net is tiny: one thread is fastest (and the solves are serial)
     from sdp_cli.data.artifacts import load_npz
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout

@@ -161,3 +161,31 @@ def test_solution_and_gains_match_finite_differences():
     for c in checks:
         assert c.converged and c.rel_error < 1e-4, (c.t, c.rel_error)
         assert np.linalg.norm(c.du_K) > 1e-4  # a non-trivial direction
+
+
+def test_variants_share_one_compiled_problem():
+    """The 4 variants differ only in how xi is sampled: their generated C code is the same, so
+    the JIT cache (keyed by the code) compiles the UR5 OCP once, not once per variant."""
+    import hashlib
+    import os
+    import tempfile
+
+    from sdp_cli.trajopt import gains
+    from sdp_cli.trajopt.ocp import build_nlp, nlp_functions, stage_blocks
+    from sdp_cli.trajopt.solver import compile_tag
+
+    assert len({compile_tag(get_task(name), 200, "fatrop") for name in NAMES}) == 1
+    assert compile_tag(get_task("quadrotor-1"), 150, "fatrop") != compile_tag(get_task("quadrotor-3"), 150, "fatrop")
+    digests = set()
+    for name in ("ur5-fixed", "ur5-rinit-rtgt"):
+        task, T = get_task(name), 4
+        nlp, layout = build_nlp(task, T)
+        blocks = stage_blocks(task)
+        gen = ca.CodeGenerator("ocp.c", {"with_header": False})
+        for f in nlp_functions(task, nlp, layout, "fatrop", blocks) + [gains.chart_function(task).map(T + 1)]:
+            gen.add(f)
+        with tempfile.TemporaryDirectory() as tmp:
+            gen.generate(tmp + os.sep)
+            with open(os.path.join(tmp, "ocp.c"), "rb") as f:
+                digests.add(hashlib.sha256(f.read()).hexdigest())
+    assert len(digests) == 1

@@ -48,6 +48,9 @@ class Task(ABC):
     n_h: int = 0
     #: action variable of the policy: "u" (torque), "x", "q" or "v"
     action: str = "u"
+    #: name of the compiled optimizer library; variants whose OCPs are the same casadi
+    #: functions (they differ only in how xi is sampled) share one (default: ``name``)
+    compile_family: str | None = None
 
     def __init__(self) -> None:
         self.data = self.model.createData()

@@ -63,6 +63,7 @@ class Ur5Task(Task):
     """UR5 reaching a 3D end-effector target under torque limits."""
 
     action = "x"
+    compile_family = "ur5"  # the 4 variants differ only in how xi is sampled: one compiled OCP
 
     def __init__(self, r_init: bool = False, r_tgt: bool = False, T: int = 200, dt: float = 0.01):
         if int(T) < 2:

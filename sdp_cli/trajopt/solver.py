@@ -102,8 +102,7 @@ class TrajOptSolver:
         gfun = {"jac_f_map": jac_f.map(self.T), "hess_stage_map": hess_stage.map(self.T),
                 "hess_term": hess_term, "chart_map": _gains.chart_function(task).map(self.T + 1),
                 "riccati": _gains.riccati_function(task.ndx, task.nu, self.T)}
-        tag = "sdp_" + "".join(c if c.isalnum() else "_" for c in task.name).strip("_").replace("__", "_") \
-            + f"_T{self.T}_{solver}"
+        tag = compile_tag(task, self.T, solver)
         lib = None
         if jit:
             lib = compile_functions(tag, nlp_functions(task, nlp, self.layout, solver, blocks) + list(gfun.values()))
@@ -248,6 +247,17 @@ class TrajOptSolver:
 
 
 _CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def compile_tag(task, T: int, solver: str) -> str:
+    """Name of the compiled library (and casadi solver) of ``task`` on horizon ``T``.
+
+    Task variants with the same ``compile_family`` share it; the cache key adds the hash
+    of the generated code, so a shared name never mixes different problems.
+    """
+    family = getattr(task, "compile_family", None) or task.name
+    return "sdp_" + "".join(c if c.isalnum() else "_" for c in family).strip("_").replace("__", "_") \
+        + f"_T{int(T)}_{solver}"
 
 
 def get_solver(task, horizon: int | None = None, *, solver: str = DEFAULT_SOLVER,
