@@ -40,6 +40,17 @@ def argmin_cost(candidates: Sequence) -> int | None:
     return best
 
 
+def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
+    """A policy rollout worth warm-starting from: finite, and not diverged (cost <= 1e5)."""
+    from sdp_cli.rollout import DIVERGENCE_COST
+
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))):
+        return False
+    with np.errstate(all="ignore"):
+        cost = task.cost(X, U, xi)
+    return bool(np.isfinite(cost) and cost <= DIVERGENCE_COST)
+
+
 def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
                     U_pol: np.ndarray, max_iter: int, baseline: bool) -> dict:
     """Solve one instance from the policy guess (and the naive guess); picklable dict out."""
@@ -47,12 +58,11 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
 
     task = get_task(task_name, **task_options)
     solver = get_solver(task, max_iter=max_iter)
-    finite = np.all(np.isfinite(X_pol)) and np.all(np.isfinite(U_pol))
-    # a diverged rollout is no guess: clip controls to the bounds and re-simulate if needed
-    if finite:
-        pol = solver.solve(xi, X_pol, np.clip(U_pol, task.u_lb, task.u_ub))
-    else:
-        pol = None
+    U_pol = np.clip(U_pol, task.u_lb, task.u_ub)
+    # a diverged rollout (non-finite, or cost above the rollout's divergence threshold) is no
+    # guess: solving from states of 1e7 wastes the iteration budget at best, and fatrop's line
+    # search can loop forever from there
+    pol = solver.solve(xi, X_pol, U_pol) if usable_guess(task, xi, X_pol, U_pol) else None
     base = solver.solve(xi, *task.naive_guess(xi)) if baseline else None
     win = argmin_cost([pol, base])
     rec = {

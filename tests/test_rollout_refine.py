@@ -124,3 +124,25 @@ def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
     r = runner.invoke(app, ["rollout", "--policy", str(trained[method]), "--task", "double_pendulum",
                             "--out", str(tmp_path / "z.npz")])
     assert r.exit_code == 1 and "trained on task 'pendulum'" in r.output
+
+
+def test_a_diverged_finite_rollout_is_no_warm_start():
+    """A DP rollout of the fig2 run (double pendulum, cost 3e14, states up to 1.6e7, all finite):
+    fatrop never returned from this guess (its line search looped for > 25 min), so refine must
+    not start the solver from it, and TO alone still gives the instance a converged solution."""
+    from pathlib import Path
+
+    from sdp_cli.refine import usable_guess
+    from sdp_cli.tasks import get_task
+
+    g = np.load(Path(__file__).parent / "data" / "diverged_double_pendulum_guess.npz")
+    task = get_task("double_pendulum")
+    assert np.all(np.isfinite(g["X"])) and not usable_guess(task, g["xi"], g["X"], g["U"])
+    rec = refine_instance("double_pendulum", {}, g["xi"], g["X"], g["U"], max_iter=1000, baseline=True)
+    assert rec["pol_iterations"] == -1 and rec["winner"] == WIN_BASELINE and bool(rec["converged"])
+    # the TO solution itself is a usable guess; NaN states are not
+    X, U = rec["X"], rec["U"]
+    assert usable_guess(task, g["xi"], X, U)
+    X_nan = X.copy()
+    X_nan[50:] = np.nan
+    assert not usable_guess(task, g["xi"], X_nan, U)
