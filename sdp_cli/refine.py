@@ -72,6 +72,9 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
         "base_cost": base.cost if base else np.nan, "base_iterations": base.iterations if base else -1,
         "base_converged": bool(base.converged) if base else False, "base_time": base.solve_time if base else 0.0,
         "winner": WIN_NONE if win is None else (WIN_POLICY if win == 0 else WIN_BASELINE),
+        # both solutions, for plots (TO alone vs refined); NaN where not solved
+        "pol_X": pol.X if pol else np.full(X_pol.shape, np.nan),
+        "base_X": base.X if base else np.full(X_pol.shape, np.nan),
     }
     # the kept candidate, or (for the record) whichever was computed; never kept unless converged
     res = (pol, base)[win] if win is not None else (pol if pol is not None else base)
@@ -96,7 +99,7 @@ def failed_record(xi: np.ndarray, status: str) -> dict:
     """The record of an instance whose job raised: nothing converged, nothing kept."""
     return {"xi": xi, "pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
             "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
-            "winner": WIN_NONE, "converged": np.asarray(False), "status": status}
+            "winner": WIN_NONE, "converged": np.asarray(False), "status": status, "pol_X": None, "base_X": None}
 
 
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
@@ -145,6 +148,9 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
                   ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost",
                    "base_iterations", "base_converged", "base_time", "winner")}
     out_arrays["inst_xi"] = arrays["xi"]
+    nan_X = np.full(arrays["X"].shape[1:], np.nan)
+    for k in ("pol_X", "base_X"):  # (n, T+1, nx): the solve from the policy guess / naive guess
+        out_arrays[f"inst_{k}"] = np.stack([nan_X if r[k] is None else np.asarray(r[k]) for r in recs])
     for k in RESULT_KEYS:
         shape = np.asarray(recs[kept[0]][k]).shape if kept else ()
         out_arrays[k] = np.stack([recs[i][k] for i in kept]) if kept else np.zeros((0, *shape))

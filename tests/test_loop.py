@@ -55,3 +55,19 @@ def test_loop_executor_options_are_validated(tmp_path):
     r = _loop(tmp_path / "x", "--executor", "mpi")
     assert r.exit_code == 1 and "unknown executor 'mpi'" in r.output
     assert not (tmp_path / "x").exists()
+
+
+def test_report_of_a_loop_run(loop_dir, tmp_path):
+    res = tmp_path / "results" / "tiny"
+    r = runner.invoke(app, ["report", "--runs", str(loop_dir.parent), "--out", str(res), "--experiment", "tiny"])
+    assert r.exit_code == 0, r.output
+    for name in ("all_runs.csv", "fig1_pendulum.png", "fig2a_pendulum.csv", "fig2b_pendulum.png",
+                 "table2c_pendulum.md", "traj_pendulum.png", "README.md"):
+        assert (res / name).is_file(), name
+    fig2a = pd.read_csv(res / "fig2a_pendulum.csv")
+    assert sorted(fig2a.iteration.unique()) == [0, 1]
+    assert "[tiny](tiny/README.md)" in (tmp_path / "results" / "README.md").read_text()
+    # the refine artifacts carry TO alone and refined solutions for the trajectory plot
+    f, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")
+    assert f["inst_base_X"].shape == (3, 101, 2) and bool(f["inst_base_converged"].all())
+    assert not pd.isna(f["inst_base_X"]).any()

@@ -115,6 +115,11 @@ def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
     d, dmeta = load_npz(rf, kind="dataset")
     assert d["K"].shape[1:] == (100, 1, 2) and len(d["inst_winner"]) == 3   # a training dataset
     assert np.all(d["cost"] <= np.where(d["inst_base_converged"][d["index"]], d["inst_base_cost"][d["index"]], np.inf) + 1e-9)
+    # both solutions are kept for the plots; the kept one is the winner's
+    assert d["inst_pol_X"].shape == d["inst_base_X"].shape == (3, 101, 2)
+    for k, i in enumerate(d["index"]):
+        src = d["inst_pol_X"] if d["inst_winner"][i] == 0 else d["inst_base_X"]
+        np.testing.assert_array_equal(src[i], d["X"][k])
     r = runner.invoke(app, ["evaluate", "--rollouts", str(ro), "--refined", str(rf), "--out", str(ev),
                             "--tag", "experiment=t"])
     assert r.exit_code == 0, r.output

@@ -183,8 +183,13 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
 
 
 def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
-    """TO alone vs policy vs refined for a few instances of the best-performing run."""
-    from sdp_cli.report.plot_dataset import trajectory_points
+    """TO alone vs policy vs refined on a few test instances of the best run (last iteration).
+
+    Pendulums in the y-z plane, UR5 and quadrotor seen from above (x-y) with the columns;
+    start (blue dot) and goal (red star) of each instance. TO alone and refined come from the
+    refine artifact's ``inst_base_X`` / ``inst_pol_X`` (older artifacts: the kept solution).
+    """
+    from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
 
     d = df[df.task == task_name]
@@ -198,27 +203,38 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     r, rmeta = load_npz(ro[0], kind="rollout")
     f, _ = load_npz(rf[0], kind="dataset")
     task = get_task(task_name, **(rmeta.get("task_options") or {}))
-    solver_X = {}
-    if "index" in f:
-        solver_X = {int(i): f["X"][k] for k, i in enumerate(f["index"])}
+    n = len(r["X"])
+    if "inst_base_X" in f:
+        to_alone, refined = f["inst_base_X"], f["inst_pol_X"]
+    else:  # artifacts written before both solutions were stored: the kept solution only
+        to_alone, refined = np.full_like(r["X"], np.nan), np.full_like(r["X"], np.nan)
+        for k, i in enumerate(f.get("index", [])):
+            refined[int(i)] = f["X"][k]
+    top = task.nq > 2
+    ix, iy = (0, 1) if top else (1, 2)
+    method = rmeta.get("method", "")
     plt = _plt()
-    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * n_show, 3.2), squeeze=False)
-    for j, ax in enumerate(axes[0][: min(n_show, len(r["X"]))]):
+    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * n_show, 3.4), squeeze=False)
+    for j, ax in enumerate(axes[0][: min(n_show, n)]):
         xi = r["xi"][j]
-        X0, _ = task.naive_guess(xi)
-        curves = [("naive guess", X0, "gray", ":"), ("policy", r["X"][j], COLORS.get(rmeta.get("method"), "tab:red"), "-")]
-        if j in solver_X:
-            curves.append(("refined", solver_X[j], "black", "--"))
-        for label, X, c, ls in curves:
+        if top:
+            _draw_columns_top(ax, task)
+        for label, X, c, ls in (("TO alone", to_alone[j], "tab:pink", "-"),
+                                (f"{method.upper()} policy", r["X"][j], COLORS.get(method, "tab:orange"), "-"),
+                                ("refined", refined[j], "0.3", "--")):
             if np.all(np.isfinite(X)):
                 P = trajectory_points(task, X)
-                ax.plot(P[:, 1], P[:, 2] if task.nq <= 2 else P[:, 0], color=c, ls=ls, label=label)
-                ax.plot(P[0, 1], P[0, 2] if task.nq <= 2 else P[0, 0], "o", color="tab:blue", ms=4)
-        ax.set_title(f"instance {j}", fontsize=9)
+                ax.plot(P[:, ix], P[:, iy], color=c, ls=ls, lw=1.4, label=label)
+        P0 = trajectory_points(task, task.initial_state(xi)[None])
+        ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
+        g = goal_point(task, xi)
+        if g is not None:
+            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=9, label="goal")
+        ax.set_title(f"test instance {j}", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
     axes[0][0].legend(fontsize=7)
-    fig.suptitle(f"{task_name}: {rmeta.get('method', '').upper()} policy vs refined vs naive guess "
-                 f"({'y-z plane' if task.nq <= 2 else 'y-x plane'})", fontsize=10)
+    fig.suptitle(f"{task_name}: TO alone vs {method.upper()} policy vs refined "
+                 f"({'x-y plane, from above' if top else 'y-z plane'}; {Path(ro[0]).stem})", fontsize=10)
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
 
 
