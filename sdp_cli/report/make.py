@@ -100,32 +100,65 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
 
 
+def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
+    """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
+    keep = []
+    for _, g in d.groupby(["method", "train_seed"], dropna=False):
+        common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
+        keep.append(g[g.t_a.isin(common)])
+    return pd.concat(keep) if keep else d
+
+
 def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    """Mean cost per loop iteration (policy, refined; log scale, ∞ where the mean diverged)
+    and the policy's success rate per iteration."""
     d = df[df.task == task]
     if d.empty:
         return []
+    d = _loop_t_a(d)
     rows = []
-    for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined")):
+    for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined"),
+                      ("success_rate", "policy success rate")):
         if col in d:
             t = _agg(d, ["method", "iteration"], col)
             t["curve"] = what
             rows.append(t)
     tab = pd.concat(rows, ignore_index=True)
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
+    costs = tab[tab.curve != "policy success rate"]
+    finite = costs["mean"][np.isfinite(costs["mean"]) & (costs["mean"] < DIVERGED)]
+    to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else np.nan
+    lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / 1.5
+    top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
+    methods = sorted(tab.method.unique())
     for (method, curve), g in tab.groupby(["method", "curve"]):
         g = g.sort_values("iteration")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
-        ax.errorbar(g["iteration"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), marker="o", capsize=3,
-                    ls="-" if curve == "policy" else "--", color=COLORS.get(method), label=f"{method.upper()} {curve}")
-    if "to_alone_cost_mean" in d:
-        to = mean_ci(d["to_alone_cost_mean"])[0]
-        if np.isfinite(to):
-            ax.axhline(to, color="black", ls=":", label="TO alone")
-    ax.set_xlabel("algorithm iteration")
-    ax.set_ylabel("mean cost on test instances")
-    ax.set_title(f"Fig. 2a — alternating loop, {task}")
-    ax.legend(fontsize=8)
+        a = ax2 if curve == "policy success rate" else ax
+        a.errorbar(g["iteration"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), marker="o", capsize=3,
+                   ls="--" if curve == "refined" else "-", color=COLORS.get(method),
+                   label=f"{method.upper()} {curve}" if a is ax else method.upper())
+        if a is ax:  # one ∞ per method and iteration, side by side
+            shift = 0.08 * (methods.index(method) - (len(methods) - 1) / 2)
+            for it in g["iteration"][~ok]:
+                ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
+    if np.isfinite(to):
+        ax.axhline(to, color="black", ls=":", label="TO alone")
+    iters = sorted(int(i) for i in tab.iteration.unique())
+    for a in (ax, ax2):
+        a.set_xticks(iters)
+        a.set_xlabel("algorithm iteration")
+    ax.set_yscale("log")
+    ax.set_ylim(lo, top * 1.2)
+    ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
+    ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
+    ax.legend(fontsize=7)
+    ax2.set_ylim(-0.03, 1.03)
+    ax2.set_ylabel("policy rollouts reaching the goal")
+    ax2.set_title("policy success rate", fontsize=10)
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
     return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
 
 
