@@ -51,6 +51,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         if len(d["inst_winner"]) != len(cost):
             raise SdpError(f"{refined} refines {len(d['inst_winner'])} instances, {rollouts} has {len(cost)}")
         pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)
+        tried = d["inst_pol_iterations"] >= 0
         best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
                         np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))
         row.update({
@@ -58,8 +59,10 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             "refined_converged_rate": float(np.mean(d["inst_winner"] >= 0)),
             "policy_guess_converged_rate": float(np.mean(pol_ok)),
             "policy_guess_cost_mean": _mean(np.where(pol_ok, d["inst_pol_cost"], np.nan)),
-            "policy_guess_iterations_mean": _mean(d["inst_pol_iterations"]),
-            "policy_guess_solve_time_mean": _mean(d["inst_pol_time"]),
+            # over the instances solved from the policy guess (a diverged rollout is no guess)
+            "policy_guess_solved_rate": float(np.mean(tried)),
+            "policy_guess_iterations_mean": _mean(np.where(tried, d["inst_pol_iterations"], np.nan)),
+            "policy_guess_solve_time_mean": _mean(np.where(tried, d["inst_pol_time"], np.nan)),
             "policy_wins": int(np.sum(d["inst_winner"] == 0)),
             "to_alone_cost_mean": _mean(np.where(base_ok, d["inst_base_cost"], np.nan)),
             "to_alone_converged_rate": float(np.mean(base_ok)) if np.any(d["inst_base_iterations"] >= 0) else float("nan"),

@@ -102,6 +102,8 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
 
 def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
     """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
+    if "iteration" not in d or d.iteration.isna().all():
+        return d
     keep = []
     for _, g in d.groupby(["method", "train_seed"], dropna=False):
         common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
@@ -162,35 +164,57 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
 
 
+def _refined_file(source: str, t_a) -> Path | None:
+    """The refine artifact of an evaluation row (loop layout: one per T_a; DVC layout: one)."""
+    p = Path(source)
+    for name in (f"refined_ta{int(t_a)}.npz" if pd.notna(t_a) else "", "refined.npz"):
+        if name and (p / name).is_file():
+            return p / name
+    return None
+
+
 def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
+    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess)."""
     d = df[df.task == task]
     if d.empty:
         return []
-    last = d[d.iteration == d.iteration.max()]
-    pol, base = [], []
-    for src in last["source"].unique():
-        p = Path(src)
-        for f in sorted(p.glob("refined*.npz")):
-            a, _ = load_npz(f, kind="dataset")
-            if "inst_pol_iterations" in a:
-                pol.append(a["inst_pol_iterations"][a["inst_pol_iterations"] >= 0])
-                base.append(a["inst_base_iterations"][a["inst_base_iterations"] >= 0])
-    if not pol:
+    last = _loop_t_a(d)
+    if last.iteration.notna().any():
+        last = last[last.iteration == last.iteration.max()]
+    rows = []
+    for r in last.itertuples():
+        f = _refined_file(r.source, r.t_a)
+        if f is None:
+            continue
+        a, _ = load_npz(f, kind="dataset")
+        if "inst_pol_iterations" not in a:
+            continue
+        pi, bi = a["inst_pol_iterations"], a["inst_base_iterations"]
+        rows += [{"method": r.method, "guess": "policy", "iterations": int(v)} for v in pi[pi >= 0]]
+        rows += [{"method": r.method, "guess": "naive", "iterations": int(v)} for v in bi[bi >= 0]]
+    if not rows:
         return []
-    pol, base = np.concatenate(pol), np.concatenate(base)
-    tab = pd.DataFrame({"guess": ["policy"] * len(pol) + ["naive"] * len(base),
-                        "iterations": np.concatenate([pol, base]).astype(int)})
+    tab = pd.DataFrame(rows)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
     hi = max(int(tab.iterations.max()), 1)
     bins = np.unique(np.geomspace(1, hi + 1, 25).astype(int))
-    ax.hist(base, bins=bins, alpha=0.6, color="gray", label=f"TO alone (naive guess), mean {base.mean():.0f}")
-    ax.hist(pol, bins=bins, alpha=0.6, color="tab:red", label=f"warm-started by the policy, mean {pol.mean():.0f}")
+    base = tab[tab.guess == "naive"]
+    # TO alone is the same solve for every method (same test instances): show it once
+    first = sorted(tab.method.unique())[0]
+    base = base[base.method == first].iterations
+    ax.hist(base, bins=bins, alpha=0.5, color="gray", label=f"TO alone (naive guess), mean {base.mean():.0f}")
+    for method, g in tab[tab.guess == "policy"].groupby("method"):
+        ax.hist(g.iterations, bins=bins, alpha=0.5, color=COLORS.get(method),
+                label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
     ax.set_xscale("log")
+    ax.set_xlim(max(0.8, tab.iterations.min() / 1.5), hi * 1.5)
     ax.set_xlabel("TO iterations")
     ax.set_ylabel("instances")
-    ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())})")
-    ax.legend(fontsize=8)
+    t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
+    ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
+    ax.legend(fontsize=7)
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
