@@ -5,7 +5,7 @@ from t (horizon T - t, warm-started from the tail, tight IPOPT), and compare the
 with K_t delta (sdp_cli.trajopt.verify). The requirement is a median relative error below 5%
 at steps where no control bound is active and at steps where one is; we measure ~1e-7.
 
-The pendulum tasks (|u| <= 25) never touch their bounds, so the clamped checks use a copy of
+The pendulum tasks (|u| <= 25; the acrobot has one motor, on joint 2) never touch their bounds, so the clamped checks use a copy of
 each task with |u| <= 1 (same dynamics and costs), where the swing-up saturates the motors.
 """
 
@@ -24,7 +24,7 @@ from sdp_cli.trajopt import gains as G
 from sdp_cli.trajopt.ocp import stage_blocks
 from sdp_cli.trajopt.verify import check_dynamics_jacobians, check_gains
 
-PENDULUMS = ["pendulum", "double_pendulum"]
+PENDULUMS = ["pendulum", "double_pendulum", "double_pendulum-acrobot"]
 U_TIGHT = 1.0
 
 
