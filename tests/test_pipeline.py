@@ -1,0 +1,44 @@
+"""Experiment files (pipelines/*.yaml) expand into DVC stage lists that chain correctly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from sdp_cli.errors import SdpError
+from sdp_cli.pipeline import expand, load_experiment, select_experiment
+from sdp_cli.tasks import task_names
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "pipelines").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_expands_into_chained_stages(name):
+    stages = expand(name, load_experiment(name, root=ROOT))
+    assert stages["train_first"], name
+    trained = {v["dir"] + "/policy" for k in ("train_first", "train_next") for v in stages[k].values()}
+    for key, st in list(stages["collect_next"].items()) + list(stages["train_next"].items()):
+        assert st["prev"] in trained, (key, st["prev"])       # each iteration names its predecessor
+        assert st["prev"] != st["dir"] + "/policy"
+    collected = {v["dir"] + "/data.npz" for k in ("collect_first", "collect_next") for v in stages[k].values()}
+    assert all(st["data"] in collected for k in ("train_first", "train_next") for st in stages[k].values())
+    assert all(st["policy"] in trained for st in stages["evaluate"].values())
+    assert {st["task"] for k in ("collect_first", "collect_next") for st in stages[k].values()} <= set(task_names())
+
+
+def test_fig2_stage_counts_and_selection(tmp_path):
+    stages = expand("fig2", load_experiment("fig2", root=ROOT))
+    # 2 methods x (4 iterations at T_a = 4, then 15 T_a values at the last one)
+    assert len(stages["evaluate"]) == 2 * (4 + 15)
+    assert len(stages["collect_first"]) == 1                 # the naive-guess dataset is shared
+    assert len(stages["train_next"]) == len(stages["collect_next"]) == 2 * 4
+    params = tmp_path / "params.yaml"
+    params.write_text("experiment: small\n")
+    counts = select_experiment("fig2", params_path=params, root=ROOT)
+    written = yaml.safe_load(params.read_text())
+    assert written["experiment"] == "fig2" and counts["evaluate"] == 38
+    with pytest.raises(SdpError, match="unknown experiment 'fig9'; known: .*fig2"):
+        select_experiment("fig9", params_path=params, root=ROOT)
