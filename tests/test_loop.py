@@ -67,6 +67,13 @@ def test_report_of_a_loop_run(loop_dir, tmp_path):
     fig2a = pd.read_csv(res / "fig2a_pendulum.csv")
     assert sorted(fig2a.iteration.unique()) == [0, 1]
     assert "[tiny](tiny/README.md)" in (tmp_path / "results" / "README.md").read_text()
+    timing = pd.read_csv(res / "timing_pendulum.csv")
+    assert list(timing.iteration) == [0, 1]
+    for k, row in timing.iterrows():
+        metrics = pd.read_csv(loop_dir / f"it{k}" / "policy" / "metrics.csv")
+        assert row.train_steps == metrics.step.iloc[-1] and row.train_s == pytest.approx(metrics.wall_time.iloc[-1])
+        assert row.collect_solve_s > 0 and row.eval_rollout_s > 0
+        assert row.total_s == pytest.approx(row.collect_solve_s + row.train_s + row.eval_rollout_s + row.eval_solve_s)
     # the refine artifacts carry TO alone and refined solutions for the trajectory plot
     f, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")
     assert f["inst_base_X"].shape == (3, 101, 2) and bool(f["inst_base_converged"].all())

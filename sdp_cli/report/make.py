@@ -9,6 +9,7 @@ Per task found under ``--runs`` (file names carry the task):
 - ``table2c_<task>``: the T_a trade-off (policy cost, refined cost, TO iterations, rollout,
   solving and total time, TO-alone columns) at the last iteration, CSV and markdown;
 - ``traj_<task>``: trajectories of a few test instances, TO alone vs policy vs refined;
+- ``timing_<task>``: where the time goes (collection, training, evaluation), per iteration;
 - ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets; a
   hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
 
@@ -295,13 +296,24 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
 
 
+def timing(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    """``timing_<task>``: collection, training and evaluation seconds per run and iteration."""
+    from sdp_cli.report.timing import timing_table
+
+    tab = timing_table(df, task)
+    if tab.empty:
+        return []
+    return [_save_csv(tab, out / f"timing_{task}.csv"),
+            _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]
+
+
 def make_report(runs: str | Path, out: str | Path, experiment: str | None = None) -> list[Path]:
     """Write every table and figure the available runs allow; returns the written paths."""
     runs, out = Path(runs), Path(out)
     df = load_runs(runs)
     written = [_save_csv(df.drop(columns=["source"]), out / "all_runs.csv")]
     for task in sorted(df.task.dropna().unique()):
-        for fn in (fig1, fig2a, fig2b, table2c, trajectories):
+        for fn in (fig1, fig2a, fig2b, table2c, trajectories, timing):
             written += fn(df, task, out)
     written.append(_index(df, runs, out, experiment, written))
     if out.resolve().parent.name == "results":

@@ -1,0 +1,75 @@
+"""Where the time of a loop goes: ``timing_<task>`` (CSV + markdown), one row per run and iteration.
+
+Columns (seconds of wall time, from the artifacts themselves):
+
+- ``collect_solve_s``: TO solves of the collection (``attempts x mean_solve_time`` of the
+  dataset's stats; the policy rollouts that warm-start them are not timed separately);
+- ``train_steps``, ``train_s`` (the run's ``metrics.csv`` wall time, carried across resumes),
+  ``train_s_per_step``;
+- ``eval_rollout_s`` and ``eval_solve_s``: rollouts of the test set and the TO solves of its
+  refinement (policy guess + TO alone), summed over the T_a values evaluated at that iteration;
+- ``total_s``: the sum.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import load_npz
+
+_IT = re.compile(r"^it\d+$")
+
+
+def _iteration_dir(source: str) -> Path | None:
+    for p in (Path(source), *Path(source).parents):
+        if _IT.match(p.name):
+            return p
+    return None
+
+
+def _collect_seconds(it_dir: Path) -> float:
+    data = it_dir / "data.npz"
+    if not data.is_file():  # DVC layout: the naive-guess dataset of iteration 0 is shared elsewhere
+        return float("nan")
+    _, meta = load_npz(data, kind="dataset")
+    stats = meta.get("stats") or {}
+    return float(stats.get("attempts", np.nan)) * float(stats.get("mean_solve_time", np.nan))
+
+
+def _train(it_dir: Path) -> tuple[float, float]:
+    m = it_dir / "policy" / "metrics.csv"
+    if not m.is_file():
+        return float("nan"), float("nan")
+    df = pd.read_csv(m)
+    return (float(df.step.iloc[-1]), float(df.wall_time.iloc[-1])) if len(df) else (float("nan"), float("nan"))
+
+
+def _col(g: pd.DataFrame, name: str, default: float) -> pd.Series:
+    return g[name].astype(float).fillna(default) if name in g else pd.Series(default, index=g.index)
+
+
+def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
+    d = df[df.task == task]
+    rows = []
+    for (method, seed, it, source_dir), g in d.groupby(
+            ["method", "train_seed", "iteration", d["source"].map(lambda s: str(_iteration_dir(s)))]):
+        it_dir = _iteration_dir(g.source.iloc[0])
+        if it_dir is None:
+            continue
+        steps, train_s = _train(it_dir)
+        n = g["n"].astype(float)
+        # mean over the instances solved from a guess x their number (older rows: mean over all, rate 1)
+        solve = (_col(g, "policy_guess_solve_time_mean", 0.0) * n * _col(g, "policy_guess_solved_rate", 1.0)
+                 + _col(g, "to_alone_solve_time_mean", 0.0) * n)
+        row = {"method": method, "train_seed": int(seed), "iteration": int(it),
+               "collect_solve_s": _collect_seconds(it_dir), "train_steps": steps, "train_s": train_s,
+               "train_s_per_step": train_s / steps if steps else np.nan,
+               "eval_t_a_values": len(g), "eval_rollout_s": float(g.rollout_time.sum()),
+               "eval_solve_s": float(np.sum(solve))}
+        row["total_s"] = float(np.nansum([row["collect_solve_s"], train_s, row["eval_rollout_s"], row["eval_solve_s"]]))
+        rows.append(row)
+    return pd.DataFrame(rows).sort_values(["method", "train_seed", "iteration"]) if rows else pd.DataFrame()
