@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, git_revision, load_npz
-from sdp_cli.report.runs import load_runs, mean_ci
+from sdp_cli.report.runs import load_runs, mean_ci, run_revisions
 
 DIVERGED = 1e5
 COLORS = {"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}
@@ -348,6 +348,13 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
              "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
+    revs = run_revisions(df)
+    if not revs.empty:
+        lines += ["", "## Code revisions of the runs (from the rollout artifacts' provenance)", "",
+                  "| task | method | iterations | revision |", "|---|---|---|---|"]
+        for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
+            its = ",".join(str(i) for i in sorted(g.iteration.unique()))
+            lines.append(f"| {task} | {method} | {its} | `{rev}` |")
     lines += ["", "## Files", ""]
     lines += [f"- `{p.name}`" for p in files if p.parent == out]
     if (out / "NOTES.md").is_file():

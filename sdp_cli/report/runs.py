@@ -66,3 +66,18 @@ def mean_ci(values: pd.Series) -> tuple[float, float, int]:
         return float("nan"), float("nan"), 0
     half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else 0.0
     return float(v.mean()), float(half), int(v.size)
+
+
+def run_revisions(df: pd.DataFrame) -> pd.DataFrame:
+    """The code revision that wrote each evaluation's rollouts: ``(task, method, iteration, git_rev)``
+    rows, from the artifacts' provenance (a resumed loop may span several commits)."""
+    from sdp_cli.data.artifacts import load_npz
+
+    rows = []
+    for r in df.drop_duplicates("source").itertuples():
+        files = sorted(Path(r.source).glob("rollout*.npz"))
+        if files:
+            _, meta = load_npz(files[0], kind="rollout")
+            rows.append({"task": r.task, "method": r.method, "iteration": int(r.iteration),
+                         "git_rev": (meta.get("provenance") or {}).get("git_rev", "unknown")})
+    return pd.DataFrame(rows, columns=["task", "method", "iteration", "git_rev"])
