@@ -250,16 +250,18 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
 
-    d = df[df.task == task_name]
-    d = d[d.iteration == d.iteration.max()].sort_values("policy_cost_mean")
-    for src in d["source"]:
-        ro, rf = sorted(Path(src).glob("rollout*.npz")), sorted(Path(src).glob("refined*.npz"))
-        if ro and rf:
+    d = _loop_t_a(df[df.task == task_name])
+    d = d[d.iteration == d.iteration.max()]
+    d = d.sort_values(["success_rate", "policy_cost_median"], ascending=[False, True])  # the best run
+    for row in d.itertuples():
+        rf = _refined_file(row.source, row.t_a)
+        ro = rf and rf.with_name(rf.name.replace("refined", "rollout"))
+        if rf is not None and ro.is_file():
             break
     else:
         return []
-    r, rmeta = load_npz(ro[0], kind="rollout")
-    f, _ = load_npz(rf[0], kind="dataset")
+    r, rmeta = load_npz(ro, kind="rollout")
+    f, _ = load_npz(rf, kind="dataset")
     task = get_task(task_name, **(rmeta.get("task_options") or {}))
     n = len(r["X"])
     if "inst_base_X" in f:
@@ -292,7 +294,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
         ax.set_aspect("equal", adjustable="datalim")
     axes[0][0].legend(fontsize=7)
     fig.suptitle(f"{task_name}: TO alone vs {method.upper()} policy vs refined "
-                 f"({'x-y plane, from above' if top else 'y-z plane'}; {Path(ro[0]).stem})", fontsize=10)
+                 f"({'x-y plane, from above' if top else 'y-z plane'}; {ro.stem})", fontsize=10)
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
 
 
