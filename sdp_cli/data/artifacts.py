@@ -32,14 +32,28 @@ FORMAT_VERSION = 1
 _PACKAGES = ("sdp-cli", "numpy", "casadi", "pin", "example-robot-data", "torch", "diffusers")
 
 
+#: repository paths written by runs; changes there do not make the source tree dirty
+GENERATED_PATHS = ("results", "runs", "dvc.lock")
+
+
 @functools.cache
 def git_revision() -> str:
-    """``git rev-parse HEAD`` of the source tree (with ``+dirty`` when modified), or ``unknown``."""
-    root = Path(__file__).resolve().parents[2]
+    """``git rev-parse HEAD`` of the source tree (with ``+dirty`` when modified), or ``unknown``.
+
+    Outputs of runs that live in the repository (``GENERATED_PATHS``: ``results/``, ``runs/``,
+    ``dvc.lock``) do not count as modifications: a report written into ``results/`` is still
+    from a clean tree.
+    """
+    return revision_of(Path(__file__).resolve().parents[2])
+
+
+def revision_of(root: Path) -> str:
+    """:func:`git_revision` of the git work tree at ``root``."""
     try:
         rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
                              timeout=5, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "."]
+                               + [f":(exclude){p}" for p in GENERATED_PATHS], cwd=root,
                                capture_output=True, text=True, timeout=5).stdout.strip()
         return rev + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
