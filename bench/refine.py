@@ -51,13 +51,15 @@ def main() -> None:
         refine(tmp / "r.npz", tmp / "f.npz", workers=args.workers)
         rebuilt = build_count() - builds
         d, _ = load_npz(tmp / "f.npz")
-    pt, bt = d["inst_pol_time"], d["inst_base_time"]
-    pi, bi = d["inst_pol_iterations"], d["inst_base_iterations"]
-    pc, bc = d["inst_pol_converged"], d["inst_base_converged"]
-    print(f"{args.n} instances, policy mean cost {s['mean_cost']:.3g}, T_a = {args.t_a}")
+    tried = d["inst_pol_iterations"] >= 0  # a diverged rollout is no guess: not solved from it
+    pt, bt = d["inst_pol_time"][tried], d["inst_base_time"][tried]
+    pi, bi = d["inst_pol_iterations"][tried], d["inst_base_iterations"][tried]
+    pc, bc = d["inst_pol_converged"][tried], d["inst_base_converged"][tried]
+    print(f"{args.n} instances, policy mean cost {s['mean_cost']:.3g}, T_a = {args.t_a}; "
+          f"{int(tried.sum())} rollouts usable as guesses (both solves compared on those)")
     print(f"{'':16s}{'mean time':>12s}{'median time':>13s}{'mean iters':>12s}{'converged':>11s}{'mean cost':>11s}")
-    for name, t, it, c, cost in (("naive guess", bt, bi, bc, d["inst_base_cost"]),
-                                 ("policy guess", pt, pi, pc, d["inst_pol_cost"])):
+    for name, t, it, c, cost in (("naive guess", bt, bi, bc, d["inst_base_cost"][tried]),
+                                 ("policy guess", pt, pi, pc, d["inst_pol_cost"][tried])):
         print(f"{name:16s}{t.mean():12.4f}{np.median(t):13.4f}{it.mean():12.1f}{c.mean():11.0%}"
               f"{np.nanmean(np.where(c, cost, np.nan)):11.3g}")
     print(f"speed-up naive / policy: mean time {bt.mean() / pt.mean():.2f}x, iterations {bi.mean() / pi.mean():.2f}x; "
