@@ -59,12 +59,16 @@ def main() -> None:
         ones = [rollout_policy(pol, xis[i:i + 1], cfg, generators=instance_generators(0, [i]))
                 for i in range(args.n)]
         t_one = time.perf_counter() - t0
-    dev = max(float(np.nanmax(np.abs(o["X"][0] - batch["X"][i]))) for i, o in enumerate(ones))
+    # batched and one-by-one differ only by float32 summation order; a chaotic or diverging
+    # rollout amplifies that, so compare the first chunk and count the trajectories that agree
+    first = max(float(np.max(np.abs(o["U"][0, :cfg.t_a] - batch["U"][i, :cfg.t_a]))) for i, o in enumerate(ones))
+    agree = sum(bool(np.allclose(o["X"][0], batch["X"][i], atol=1e-3, equal_nan=True)) for i, o in enumerate(ones))
     print(f"task {pol.task_name}, method {pol.method}, n = {args.n}, T = {pol.task.T}, T_h = {pol.T_h}, "
           f"T_a = {cfg.t_a}, K = {cfg.k_rollout}, torch threads = {torch.get_num_threads()}")
     print(f"batched    : {t_batch:8.3f} s total, {t_batch / args.n * 1e3:8.2f} ms per instance")
     print(f"one by one : {t_one:8.3f} s total, {t_one / args.n * 1e3:8.2f} ms per instance")
-    print(f"ratio one-by-one / batched = {t_one / t_batch:.1f}x; max |X_batched - X_one| = {dev:.2e}")
+    print(f"ratio one-by-one / batched = {t_one / t_batch:.1f}x; first chunk max |U_batched - U_one| = {first:.1e}; "
+          f"{agree}/{args.n} whole trajectories agree to 1e-3")
     print(f"paper: 1.1 s for one rollout on a laptop GPU -> batched total / 1.1 s = {t_batch / 1.1:.2f}")
 
 
