@@ -274,8 +274,9 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     ix, iy = (0, 1) if top else (1, 2)
     method = rmeta.get("method", "")
     plt = _plt()
-    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * n_show, 3.4), squeeze=False)
-    for j, ax in enumerate(axes[0][: min(n_show, n)]):
+    n_show = min(n_show, n)
+    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * max(n_show, 2), 3.4), squeeze=False)
+    for j, ax in enumerate(axes[0]):
         xi = r["xi"][j]
         if top:
             _draw_columns_top(ax, task)
