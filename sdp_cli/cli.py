@@ -209,6 +209,7 @@ def train_cmd(
     n_proj: Annotated[int, typer.Option("--n-proj", help="Random projections per sample.")] = 1,
     sobolev_mode: Annotated[str, typer.Option("--sobolev-mode", help="jvp: project on the state side (forward mode, default); vjp: eq. (6), project on the output side.")] = "jvp",
     sobolev_fraction: Annotated[float, typer.Option("--sobolev-fraction", help="jvp mode: share of each batch that gets the Sobolev term (1 = all; 0.5 costs ~1.5x a DP step instead of ~1.9x).")] = 1.0,
+    sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: down-weight the Sobolev error of chunks whose target-Jacobian norm exceeds this quantile of the dataset's (e.g. 0.9); off by default.")] = None,
     action: Annotated[Optional[str], typer.Option(help="Action variable u, x, q or v (default: the task's).")] = None,
     save_at: Annotated[Optional[str], typer.Option("--save-at", help="Comma-separated epochs at which to keep a checkpoint, e.g. 1000,2000.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out (after a kill).")] = False,
@@ -235,7 +236,8 @@ def train_cmd(
         torch.set_num_threads(threads)
     cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
                       K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
-                      sobolev_fraction=sobolev_fraction, action=action, save_at=save, down_dims=dims)
+                      sobolev_fraction=sobolev_fraction, sobolev_cap=sobolev_cap, action=action, save_at=save,
+                      down_dims=dims)
     path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
     typer.echo(f"wrote {path}")
 
@@ -274,12 +276,14 @@ def loop_cmd(
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
+    sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
     from sdp_cli.loop import LoopConfig, run_loop
     from sdp_cli.train import resolve_device
 
-    opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size)) if v is not None}
+    opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size),
+                              ("sobolev_cap", sobolev_cap)) if v is not None}
     cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),
                      epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
                      eval_t_a=_int_list(eval_t_a, "--eval-t-a"),

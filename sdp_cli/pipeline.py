@@ -41,7 +41,7 @@ GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1,
                   "max_iter": 1000, "train": {}}
 _TRAIN_FLAGS = {"batch_size": "--batch-size", "alpha_sobolev": "--alpha-sobolev", "lr": "--lr",
                 "n_proj": "--n-proj", "sobolev_mode": "--sobolev-mode", "diffusion_steps": "--diffusion-steps",
-                "action": "--action"}
+                "action": "--action", "sobolev_cap": "--sobolev-cap"}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:

@@ -75,6 +75,10 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu"):
     norm = normalizer if normalizer is not None else fit_normalizer(task, arrays, action)
     net.normalizer.load_state_dict(norm.state_dict())
     tensors = ds.tensors(net.normalizer, device)
+    if cfg.sobolev and cfg.sobolev_cap is not None:
+        from sdp_cli.losses.sobolev import capped_weights
+
+        tensors["sob_weight"] = capped_weights(tensors["jac"][:, cfg.T_o:], cfg.sobolev_cap)
     return net.to(device), tensors, ds.epoch_size(), action, dims
 
 

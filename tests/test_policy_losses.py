@@ -103,3 +103,25 @@ def test_zero_loss_on_exact_linear_model(fn):
     # and a wrong Jacobian gives a positive term
     _, bad = fn(f, D_IN, J_true + 0.1, n_proj=1, generator=torch.Generator().manual_seed(0))
     assert torch.all(bad > 0)
+
+
+def test_capped_weights_bound_each_samples_sobolev_scale():
+    from sdp_cli.losses.sobolev import capped_weights
+
+    scales = torch.tensor([1.0, 2.0, 3.0, 4.0, 100.0])
+    J = scales[:, None, None] * random_unit((5, 4, 3), torch.Generator().manual_seed(0))  # ||J_s||_F = scale
+    w = capped_weights(J, 0.5)                       # cap = median norm = 3
+    torch.testing.assert_close(w[:3], torch.ones(3))
+    # above the cap, weight x ||J||^2 = cap^2: the outlier counts like a sample of norm 3
+    torch.testing.assert_close(w[3:] * scales[3:] ** 2, torch.full((2,), 9.0))
+    torch.testing.assert_close(capped_weights(J, 1.0), torch.ones(5))   # quantile 1: no capping
+
+
+def test_sobolev_cap_is_validated():
+    from sdp_cli.errors import SdpError
+    from sdp_cli.policy.config import TrainConfig
+
+    with pytest.raises(SdpError, match="sobolev_cap is a quantile in \\(0, 1\\], got 1.5"):
+        TrainConfig(method="sdp", sobolev_cap=1.5)
+    with pytest.raises(SdpError, match="sobolev_cap applies to method sdp, not 'dp'"):
+        TrainConfig(method="dp", sobolev_cap=0.9)

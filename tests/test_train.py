@@ -158,3 +158,15 @@ def test_cli_train_and_bad_input(data, tmp_path):
     r = invoke("train", "--data", data["ok"], "--method", "dp", "--epochs", 1, "--out", tmp_path / "u",
                "--horizon", 12)
     assert r.exit_code == 1 and "divisible" in r.output
+
+
+def test_sobolev_cap_only_lowers_the_sobolev_term(data, tmp_path):
+    """Same seed, same batches and projections: capped weights (<= 1) can only lower the Sobolev
+    term of each step, and leave the DDPM term of the first step unchanged."""
+    train(data["double"], tmp_path / "plain", cfg("sdp", epochs=1), device="cpu", progress=False, log=quiet)
+    path = train(data["double"], tmp_path / "cap", cfg("sdp", epochs=1, sobolev_cap=0.5), device="cpu",
+                 progress=False, log=quiet)
+    assert load_checkpoint(path)["config"]["sobolev_cap"] == 0.5
+    a, b = rows(tmp_path / "plain")[0], rows(tmp_path / "cap")[0]
+    assert float(b["dp"]) == pytest.approx(float(a["dp"]), rel=1e-6)
+    assert 0 < float(b["sobolev"]) < float(a["sobolev"])

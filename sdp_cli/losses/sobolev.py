@@ -76,3 +76,13 @@ def sobolev_term(mode: str, f, d_in: int, J: torch.Tensor, n_proj: int = 1, gene
     if mode == "jvp":
         return sobolev_input_projection(f, d_in, J, n_proj, generator, f_jvp)
     raise ValueError(f"unknown Sobolev mode {mode!r}")
+
+
+def capped_weights(J: torch.Tensor, quantile: float) -> torch.Tensor:
+    """Per-sample Sobolev weights ``min(1, (c / ||J_s||_F)^2)`` with ``c`` the ``quantile`` of the
+    norms ``||J_s||_F`` over the samples (J (N, ..., d_in)): the squared error of a sample whose
+    target Jacobian is larger than ``c`` counts as if its Jacobian had norm ``c``, so a few chunks
+    with huge gains (e.g. an unstable closed loop) cannot dominate the term. (N,)"""
+    norms = J.reshape(J.shape[0], -1).norm(dim=1)
+    c = torch.quantile(norms.double(), quantile).to(norms.dtype)
+    return (c / norms.clamp_min(1e-12)).clamp(max=1.0) ** 2

@@ -37,6 +37,8 @@ class TrainConfig:
     n_proj: int = 1
     sobolev_mode: str = "jvp"        # "jvp": projection on the x side (forward mode); "vjp": eq. (6)
     sobolev_fraction: float = 1.0    # jvp mode: share of each batch that gets the Sobolev term
+    sobolev_cap: float | None = None  # quantile of the chunk-Jacobian norms above which the Sobolev
+                                      # error is down-weighted (losses.sobolev.capped_weights); None: off
     # optimization (diffusion policy defaults)
     lr: float = 1e-3
     weight_decay: float = 1e-6
@@ -63,6 +65,11 @@ class TrainConfig:
             raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
         if self.alpha_sobolev < 0:
             raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
+        if self.sobolev_cap is not None:
+            if not 0 < self.sobolev_cap <= 1:
+                raise SdpError(f"sobolev_cap is a quantile in (0, 1], got {self.sobolev_cap}")
+            if self.method != "sdp":
+                raise SdpError(f"sobolev_cap applies to method sdp, not {self.method!r}")
         if self.is_diffusion:
             levels = len(self.down_dims)
             if self.T_h % (2 ** (levels - 1)):

@@ -102,7 +102,8 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     J = batch["jac"][:n_s, T_o:]
     pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
     dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-    sob = term.mean()
+    w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
+    sob = term.mean() if w is None else (w[:n_s] * term).mean()
     loss = dp + cfg.alpha_sobolev * sob
     return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
