@@ -80,6 +80,10 @@ class LoopConfig:
 RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler")
 
 
+def _config_json(cfg: LoopConfig) -> str:
+    return pd.Series(asdict(cfg)).to_json(indent=2)
+
+
 def check_resume(cfg: LoopConfig, out: Path) -> None:
     """Refuse to resume ``out`` with settings that would mix two experiments in one folder."""
     import json
@@ -91,7 +95,7 @@ def check_resume(cfg: LoopConfig, out: Path) -> None:
         old = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise SdpError(f"corrupt loop config {path}: {e}") from None
-    new = json.loads(pd.Series(asdict(cfg)).to_json())
+    new = json.loads(_config_json(cfg))
     bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
     if bad:
         diffs = ", ".join(f"{k}={old[k]!r} (now {new[k]!r})" for k in bad)
@@ -156,8 +160,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     check_resume(cfg, out)
-    atomic_write_bytes(out / "loop_config.json",
-                       lambda f: f.write(pd.Series(asdict(cfg)).to_json(indent=2).encode()))
+    atomic_write_bytes(out / "loop_config.json", lambda f: f.write(_config_json(cfg).encode()))
     tables, prev_policy, datasets = [], None, []
     for k in range(cfg.n_algo):
         d = out / f"it{k}"

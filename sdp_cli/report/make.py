@@ -103,9 +103,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
 
 def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
     """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
-    if "iteration" not in d or d.iteration.isna().all():
-        return d
-    keep = []
+    keep = []  # (load_runs gives every row an integer iteration)
     for _, g in d.groupby(["method", "train_seed"], dropna=False):
         common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
         keep.append(g[g.t_a.isin(common)])
@@ -181,8 +179,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     if d.empty:
         return []
     last = _loop_t_a(d)
-    if last.iteration.notna().any():
-        last = last[last.iteration == last.iteration.max()]
+    last = last[last.iteration == last.iteration.max()]
     rows = []
     for r in last.itertuples():
         f = _refined_file(r.source, r.t_a)

@@ -16,13 +16,14 @@ import pandas as pd
 
 from sdp_cli.errors import SdpError
 
-_IT = re.compile(r"^it(\d+)$")
+#: name of an iteration folder of a loop run, ``it<k>``
+ITERATION_DIR = re.compile(r"^it(\d+)$")
 
 
 def _run_and_iteration(csv: Path, root: Path) -> tuple[str, int | None]:
     parts = csv.relative_to(root).parts
     for i, p in enumerate(parts):
-        m = _IT.match(p)
+        m = ITERATION_DIR.match(p)
         if m:
             return "/".join(parts[:i]) or root.name, int(m.group(1))
     return "/".join(parts[:-1]) or root.name, None

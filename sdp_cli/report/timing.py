@@ -13,20 +13,18 @@ Columns (seconds of wall time, from the artifacts themselves):
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-
-_IT = re.compile(r"^it\d+$")
+from sdp_cli.report.runs import ITERATION_DIR
 
 
 def _iteration_dir(source: str) -> Path | None:
     for p in (Path(source), *Path(source).parents):
-        if _IT.match(p.name):
+        if ITERATION_DIR.match(p.name):
             return p
     return None
 
