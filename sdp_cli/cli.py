@@ -173,6 +173,7 @@ def evaluate_cmd(
     typer.echo(f"wrote {out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                             for k, v in row.items() if k in (
                                                 "method", "policy_cost_mean", "refined_cost_mean",
+                                                "refined_converged_rate", "argmin_cost_mean",
                                                 "to_alone_cost_mean", "success_rate")))
 
 
@@ -292,8 +293,8 @@ def loop_cmd(
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
                      train_options=opts)
     summary = run_loop(cfg, out, log=typer.echo)
-    cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "to_alone_cost_mean",
-                        "success_rate") if c in summary]
+    cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
+                        "to_alone_cost_mean", "success_rate") if c in summary]
     typer.echo(summary[cols].to_string(index=False))
 
 

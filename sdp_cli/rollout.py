@@ -7,8 +7,8 @@ identical to Pinocchio's semi-implicit Euler to ~1e-13, see tests/test_dynamics.
 
 Actions: torque policies (``action == "u"``) play ``tau_0[T_o : T_o + T_a]`` directly,
 saturated at the control bounds (the actuators cannot do more); state policies predict
-``g(x_{t+1}), ...`` and the controls come from the task's inverse dynamics (RNEA for arms,
-thrust allocation for the quadrotor), which needs only the predicted next velocity.
+``g(x_{t+1}), ...`` and the controls come from :meth:`Task.controls_from_action` (inverse
+dynamics: RNEA for fully actuated arms, thrust allocation for the quadrotor).
 
 Divergence (a NaN state, or a cost above ``DIVERGENCE_COST``) is recorded, not raised:
 the instance's remaining states are NaN and ``diverged`` is set.
@@ -68,15 +68,6 @@ def step_batch(task: Task, X: np.ndarray, U: np.ndarray) -> np.ndarray:
     return task._sdp_step_map[1](X.T, U.T).full().T
 
 
-def controls_from_actions(task: Task, X: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """Controls ``(B, nu)`` that realize the actions ``A (B, n_action)`` from states ``X (B, nx)``."""
-    if task.action == "u":
-        return np.clip(A, task.u_lb, task.u_ub)
-    # every state action ends with the next velocity; inverse dynamics needs only that part
-    X_next = np.concatenate([X[:, : task.nq], A[:, -task.nv:]], axis=1)
-    return task.inverse_dynamics(X, X_next)
-
-
 def instance_generators(seed: int, indices, device="cpu") -> list[torch.Generator]:
     """One torch generator per instance, seeded by ``(seed, index)``: the rollout of an instance
     does not depend on which other instances share its batch."""
@@ -119,7 +110,7 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
                 if a is None:  # MLP: one control per state
                     u = np.clip(policy.act(x, xis[idx]), task.u_lb, task.u_ub)
                 else:
-                    u = controls_from_actions(task, x, a)
+                    u = task.controls_from_action(x, a)
                 x_next = step_batch(task, x, u)
                 bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > 1e8)
                 U[idx, t + s] = u

@@ -9,8 +9,9 @@
   ``checkpoint_every_s`` seconds, at the end and on Ctrl-C), ``epoch_<E>.pt`` for each
   ``--save-at`` epoch, ``metrics.csv`` (step, epoch, loss, dp, sobolev, lr, grad_norm, wall_time).
 - ``resume=True`` continues from ``checkpoint.pt`` bit-for-bit (optimizer, schedule, EMA
-  and RNG state are restored). ``init`` starts from another checkpoint's weights, EMA
-  and normalizer (the alternating loop's warm start); its architecture settings win.
+  and RNG state are restored). ``init`` starts from another checkpoint's weights and EMA
+  (the alternating loop's warm start); its architecture settings win, and its normalizer is
+  widened to cover the new dataset too (:meth:`Normalizer.union`).
 """
 
 from __future__ import annotations
@@ -140,6 +141,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if init_ck is not None or prev is not None:
         from sdp_cli.policy.checkpoint import net_from_checkpoint
         norm = net_from_checkpoint(prev or init_ck).normalizer
+        if prev is None:   # --init: cover the previous ranges and the new dataset's
+            norm = norm.union(fit_normalizer(task, arrays, cfg.action or task.action if cfg.is_diffusion else "u"))
     net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev)
     n_samples = next(iter(tensors.values())).shape[0]
     steps_per_epoch = math.ceil(E / cfg.batch_size)
@@ -155,6 +158,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                    power=cfg.ema_power)
     if init_ck is not None:
         net.load_state_dict(init_ck["model"])
+        net.normalizer.load_state_dict(norm.state_dict())   # the widened one, not the checkpoint's
     step, wall0, rows = 0, 0.0, []
     if prev is not None:
         net.load_state_dict(prev["model"])

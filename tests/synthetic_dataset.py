@@ -49,7 +49,7 @@ def tvlqr_gains(A, B, Q=1.0, R=0.1):
     return K
 
 
-def make_trajectories(task, n_traj: int, seed: int = 0):
+def make_trajectories(task, n_traj: int, seed: int = 0, u_scale: float = 1.0):
     """Arrays of a dataset artifact (X, U, K, A, B, Phi, xi, cost, ...)."""
     rng = np.random.default_rng(seed)
     T = task.T
@@ -58,7 +58,7 @@ def make_trajectories(task, n_traj: int, seed: int = 0):
     for _ in range(n_traj):
         xi = task.sample_xi(rng)
         x0 = task.initial_state(xi)
-        amp = rng.uniform(2.0, 6.0, task.nu) / task.nu ** 3   # keeps the double pendulum tame
+        amp = u_scale * rng.uniform(2.0, 6.0, task.nu) / task.nu ** 3   # keeps the double pendulum tame
         freq = rng.uniform(0.5, 2.0, task.nu)
         phase = rng.uniform(0, 2 * np.pi, task.nu)
         U = amp * np.sin(2 * np.pi * freq * t[:, None] + phase)
@@ -82,10 +82,10 @@ def make_trajectories(task, n_traj: int, seed: int = 0):
     return arrays
 
 
-def write_dataset(path, task_name="pendulum", n_traj=4, seed=0, T=40, drop=()):
+def write_dataset(path, task_name="pendulum", n_traj=4, seed=0, T=40, drop=(), u_scale=1.0):
     """Write a synthetic dataset artifact; ``drop`` removes arrays (to test bad input)."""
     task = get_task(task_name, T=T)
-    arrays = make_trajectories(task, n_traj, seed)
+    arrays = make_trajectories(task, n_traj, seed, u_scale)
     for k in drop:
         arrays.pop(k)
     dims = {"nq": task.nq, "nv": task.nv, "nx": task.nx, "ndx": task.ndx, "nu": task.nu,

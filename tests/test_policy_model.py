@@ -154,3 +154,57 @@ def test_forward_jvp_on_a_sub_batch():
     loss, parts = diffusion_loss(DiffusionNet(cfg, 1, 3, 2, 2), make_scheduler(cfg), _batch(), cfg,
                                  torch.Generator().manual_seed(0), sobolev=True)
     assert torch.isfinite(loss) and parts["sobolev"] > 0
+
+
+class _Recorder(torch.nn.Module):
+    """Wraps a DiffusionNet and records the diffusion index of every call."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net, self.cfg, self.calls = net, net.cfg, []
+
+    def forward(self, tau, k, xi, obs):
+        self.calls.append(int(k[0]))
+        return self.net(tau, k, xi, obs)
+
+
+@pytest.mark.parametrize("k_rollout", [1, 2, 3, 4, 5])
+def test_k_rollout_chain_starts_from_pure_noise(k_rollout):
+    """Every chain starts at index K - 1 (pure noise) and steps down its own list to the end.
+
+    diffusers' default "leading" spacing gave set_timesteps(2) -> [2, 0] and set_timesteps(1) -> [0]."""
+    from sdp_cli.policy.diffusion import rollout_timesteps
+
+    cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    sch = make_scheduler(cfg)
+    rec = _Recorder(DiffusionNet(cfg, 1, 3, 2, 2).eval())
+    steps = []
+    orig = sch.step
+    sch.step = lambda pred, t, tau, **kw: (steps.append((int(t), int(sch.previous_timestep(t)))), orig(pred, t, tau, **kw))[1]
+    sample_chunk(rec, sch, torch.zeros(2, 2), torch.zeros(2, 1, 3), torch.zeros(2, 1, 1), 8, k_rollout,
+                 generator=torch.Generator().manual_seed(0))
+    ts = rollout_timesteps(cfg.K, k_rollout)
+    assert rec.calls == ts and ts[0] == cfg.K - 1 and len(ts) == k_rollout
+    assert [t for t, _ in steps] == ts
+    assert [p for _, p in steps] == ts[1:] + [-1]        # each step goes to the next index, the last to clean
+    assert k_rollout == 1 or ts[-1] == 0
+
+
+def test_full_chain_is_unchanged_by_explicit_timesteps():
+    """k_rollout = K is bit-identical to the chain diffusers builds from set_timesteps(K)."""
+    cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    torch.manual_seed(3)
+    net = DiffusionNet(cfg, 1, 3, 2, 2).eval()
+    xi, obs, a_hist = torch.randn(3, 2), torch.randn(3, 1, 3), torch.full((3, 1, 1), 0.2)
+    new = sample_chunk(net, make_scheduler(cfg), xi, obs, a_hist, 8, cfg.K, generator=torch.Generator().manual_seed(1))
+    sch = make_scheduler(cfg)
+    sch.set_timesteps(cfg.K)
+    g = torch.Generator().manual_seed(1)
+    from diffusers.utils.torch_utils import randn_tensor
+    with torch.no_grad():
+        tau = randn_tensor((3, 8, 1), generator=g, dtype=a_hist.dtype)
+        for t in sch.timesteps:
+            tau[:, :1] = a_hist
+            tau = sch.step(net(tau, torch.full((3,), int(t)), xi, obs), t, tau, generator=g).prev_sample
+        tau[:, :1] = a_hist
+    assert torch.equal(new, tau)

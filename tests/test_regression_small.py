@@ -55,8 +55,6 @@ def test_small_experiment_sdp_cost_below_threshold(small_repro):
     assert len(sdp) == 1 and sdp.n.iloc[0] == 20
     cost = float(sdp.policy_cost_mean.iloc[0])
     assert cost <= SMALL_SDP_MAX_COST, f"SDP mean cost {cost:.1f} > {SMALL_SDP_MAX_COST} on the small experiment"
-    # refinement never makes things worse than TO alone on the same instances
-    assert (last.refined_cost_mean <= last.to_alone_cost_mean + 1e-6).all()
 
 
 def test_small_experiment_report(small_repro):

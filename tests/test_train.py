@@ -117,18 +117,35 @@ def test_resume_after_kill_is_bit_identical(data, tmp_path):
     assert load_checkpoint(tmp_path / "run" / "epoch_3.pt")["epoch"] == 3
 
 
-def test_init_keeps_weights_and_normalizer(data, tmp_path):
+def test_init_keeps_weights_and_widens_the_normalizer(data, tmp_path):
     first = train(data["ok"], tmp_path / "first", cfg("pddp_s", epochs=2), device="cpu", progress=False, log=quiet)
-    # a second dataset with different ranges: the normalizer of --init must be kept
-    other = write_dataset(tmp_path / "other.npz", "pendulum", n_traj=2, seed=7, T=T)
+    # a second dataset with 3x larger torques: --init must widen the normalizer to cover it
+    other = write_dataset(tmp_path / "other.npz", "pendulum", n_traj=2, seed=7, T=T, u_scale=3.0)
     second = train(other, tmp_path / "second", cfg("pddp_s", epochs=1, mlp_hidden=[64]), device="cpu",
                    init=first, progress=False, log=quiet)
     a, b = load_checkpoint(first), load_checkpoint(second)
-    for k in a["model"]:
-        if k.startswith("normalizer."):
-            torch.testing.assert_close(a["model"][k], b["model"][k])
+    lo = lambda ck, kind: ck["model"][f"normalizer.{kind}_center"] - ck["model"][f"normalizer.{kind}_scale"]
+    hi = lambda ck, kind: ck["model"][f"normalizer.{kind}_center"] + ck["model"][f"normalizer.{kind}_scale"]
+    U = np.load(other)["U"]
+    assert U.max() > float(hi(a, "action").max()) + 1e-3         # outside the first policy's range
+    for kind in ("action", "obs", "xi"):                           # the union of both ranges
+        assert torch.all(lo(b, kind) <= lo(a, kind) + 1e-6) and torch.all(hi(b, kind) >= hi(a, kind) - 1e-6)
+    assert float(lo(b, "action").min()) <= U.min() + 1e-4 and float(hi(b, "action").max()) >= U.max() - 1e-4
     assert b["config"]["mlp_hidden"] == [32, 32]    # architecture of the init checkpoint wins
     assert b["init"] == str(first)
+
+
+def test_init_diffusion_policy_can_output_the_new_range(data, tmp_path):
+    """With clip_sample the diffusion policy's outputs lie in its normalizer's range: after --init on
+    wider data, a prediction pushed to the clip bound reaches the new data's largest torque."""
+    first = train(data["ok"], tmp_path / "first", cfg("dp", epochs=1), device="cpu", progress=False, log=quiet)
+    other = write_dataset(tmp_path / "other.npz", "pendulum", n_traj=2, seed=7, T=T, u_scale=3.0)
+    train(other, tmp_path / "second", cfg("dp", epochs=1), device="cpu", init=first, progress=False, log=quiet)
+    U = np.load(other)["U"]
+    for run, ok in ((tmp_path / "first", False), (tmp_path / "second", True)):
+        pol = load_policy(run)
+        top = float(pol.norm.unnormalize("action", torch.ones(1))[0])   # the largest clipped output
+        assert (top >= U.max() - 1e-4) == ok
 
 
 def invoke(*args):

@@ -128,8 +128,8 @@ def task_with_action(task: Task, action: str | None) -> Task:
     """``task`` itself, or a shallow copy whose ``action`` variable is ``action``."""
     if action is None or action == task.action:
         return task
-    if action not in ("u", "x", "q", "v"):
-        raise SdpError(f"action must be one of u, x, q, v; got {action!r}")
+    if action not in task.accepted_actions:
+        raise SdpError(f"task {task.name!r} accepts actions {', '.join(task.accepted_actions)}; got {action!r}")
     other = copy.copy(task)
     other.action = action
     return other

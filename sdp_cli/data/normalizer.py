@@ -54,6 +54,27 @@ class Normalizer(nn.Module):
         norm.x_center.zero_()  # the tangent has no meaningful origin: only its scale is used
         return norm
 
+    def union(self, other: "Normalizer") -> "Normalizer":
+        """A normalizer whose ranges cover both ``self``'s and ``other``'s (same sizes).
+
+        The loop's warm start (``sdp train --init``) keeps the previous policy's normalizer
+        only as far as it covers the new dataset: with ``clip_sample`` the policy cannot
+        output actions outside its normalized [-1, 1], and policy-warm-started datasets are
+        wider than iteration 0's. The state-tangent scale is the larger of the two.
+        """
+        out = Normalizer(*(getattr(self, f"{k}_center").numel() for k in _KINDS))
+        for kind in _KINDS:
+            c1, s1 = getattr(self, f"{kind}_center"), getattr(self, f"{kind}_scale")
+            c2, s2 = getattr(other, f"{kind}_center"), getattr(other, f"{kind}_scale")
+            if c1.shape != c2.shape:
+                raise ValueError(f"normalizer sizes differ for {kind}: {tuple(c1.shape)} vs {tuple(c2.shape)}")
+            lo, hi = torch.minimum(c1 - s1, c2 - s2), torch.maximum(c1 + s1, c2 + s2)
+            getattr(out, f"{kind}_center").copy_((hi + lo) / 2)
+            getattr(out, f"{kind}_scale").copy_((hi - lo) / 2)
+        out.x_center.zero_()
+        out.x_scale.copy_(torch.maximum(self.x_scale, other.x_scale))
+        return out
+
     # ------------------------------------------------------------ values
     def normalize(self, kind: str, y: torch.Tensor) -> torch.Tensor:
         """``(y - center) / scale`` over the last axis."""

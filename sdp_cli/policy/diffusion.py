@@ -19,6 +19,7 @@ Sobolev term needs (values at ``delta = 0`` are the data).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from diffusers.utils.torch_utils import randn_tensor
 from diffusers import DDPMScheduler
@@ -108,13 +109,29 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
 
+def rollout_timesteps(K: int, k_rollout: int) -> list[int]:
+    """The ``k_rollout`` scheduler indices of a reverse chain over a model trained with ``K`` steps.
+
+    Always starts from pure noise (index ``K - 1``) and ends at 0 (``k_rollout >= 2``), evenly
+    spaced: K = 5 gives [4, 3, 2, 1, 0], [4, 2, 0], [4, 0] and [4]. Passed to diffusers
+    explicitly, so every diffusers version gives the same chain; its default "leading" spacing
+    would start ``set_timesteps(2)`` at index 2 and ``set_timesteps(1)`` at 0, feeding pure noise
+    as an almost clean sample.
+    """
+    if not 1 <= k_rollout <= K:
+        raise ValueError(f"k_rollout must be in [1, {K}], got {k_rollout}")
+    if k_rollout == 1:
+        return [K - 1]
+    return [int(t) for t in np.round(np.linspace(K - 1, 0, k_rollout))]
+
+
 @torch.no_grad()
 def sample_chunk(net: DiffusionNet, scheduler: DDPMScheduler, xi_n, obs_n, a_hist_n, T_h: int,
                  k_rollout: int | None = None, generator: torch.Generator | list | None = None):
     """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``(B, T_h, A)`` with inpainted history."""
     cfg = net.cfg
     B, T_o, A = a_hist_n.shape
-    scheduler.set_timesteps(k_rollout or cfg.K, device=a_hist_n.device)
+    scheduler.set_timesteps(timesteps=rollout_timesteps(cfg.K, k_rollout or cfg.K), device=a_hist_n.device)
     # a list of generators (one per instance) makes batched and one-by-one sampling identical
     tau = randn_tensor((B, T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
     for t in scheduler.timesteps:

@@ -111,15 +111,16 @@ def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
 
 
 def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    """Mean cost per loop iteration (policy, refined; log scale, ∞ where the mean diverged)
-    and the policy's success rate per iteration."""
+    """Mean cost per loop iteration (policy; refined = TO warm-started by the policy, over its
+    converged solves; ArgminCost(refined, TO alone), drawn dotted beside them since it is <= TO
+    alone by construction; log scale, ∞ where the mean diverged) and the policy's success rate."""
     d = df[df.task == task]
     if d.empty:
         return []
     d = _loop_t_a(d)
     rows = []
     for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined"),
-                      ("success_rate", "policy success rate")):
+                      ("argmin_cost_mean", "ArgminCost"), ("success_rate", "policy success rate")):
         if col in d:
             t = _agg(d, ["method", "iteration"], col)
             t["curve"] = what
@@ -138,7 +139,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         a = ax2 if curve == "policy success rate" else ax
         a.errorbar(g["iteration"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), marker="o", capsize=3,
-                   ls="--" if curve == "refined" else "-", color=COLORS.get(method),
+                   ls={"refined": "--", "ArgminCost": ":"}.get(curve, "-"), color=COLORS.get(method),
                    label=f"{method.upper()} {curve}" if a is ax else method.upper())
         if a is ax:  # one ∞ per method and iteration, side by side
             shift = 0.08 * (methods.index(method) - (len(methods) - 1) / 2)
@@ -216,20 +217,21 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
-TABLE2C = {"policy_cost_mean": "policy cost", "refined_cost_mean": "refined cost",
-           "policy_guess_iterations_mean": "TO iterations", "rollout_time_per_instance": "rollout time (s)",
-           "policy_guess_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
+TABLE2C = {"policy_cost_mean": "policy cost", "refined_cost_mean": "refined cost (TO from policy guess)",
+           "refined_converged_rate": "refined converged", "argmin_cost_mean": "ArgminCost(refined, TO alone)",
+           "refined_iterations_mean": "TO iterations from policy guess", "rollout_time_per_instance": "rollout time (s)",
+           "refined_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
            "to_alone_cost_mean": "TO alone cost", "to_alone_iterations_mean": "TO alone iterations",
            "to_alone_solve_time_mean": "TO alone time (s)"}
 
 
 def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     d = df[(df.task == task)].copy()
-    if d.empty or "policy_guess_solve_time_mean" not in d:
+    if d.empty or "refined_solve_time_mean" not in d:
         return []
     d = d[d.iteration == d.iteration.max()]
     d = d[d.epochs == d.epochs.max()]
-    d["total_time"] = d["rollout_time_per_instance"] + d["policy_guess_solve_time_mean"]
+    d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
     cols = [c for c in TABLE2C if c in d]
     tab = d.groupby(["method", "t_a"])[cols].mean().reset_index().sort_values(["method", "t_a"])
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})

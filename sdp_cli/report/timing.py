@@ -61,7 +61,7 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
         steps, train_s = _train(it_dir)
         n = g["n"].astype(float)
         # mean over the instances solved from a guess x their number (older rows: mean over all, rate 1)
-        solve = (_col(g, "policy_guess_solve_time_mean", 0.0) * n * _col(g, "policy_guess_solved_rate", 1.0)
+        solve = (_col(g, "refined_solve_time_mean", 0.0) * n * _col(g, "refined_solved_rate", 1.0)
                  + _col(g, "to_alone_solve_time_mean", 0.0) * n)
         row = {"method": method, "train_seed": int(seed), "iteration": int(it),
                "collect_solve_s": _collect_seconds(it_dir), "train_steps": steps, "train_s": train_s,

@@ -279,6 +279,9 @@ class QuadrotorTask(Task):
         J[..., self.nv:, self.nv:] = np.eye(self.nv)
         return J
 
+    #: state control (dq, v) through the thrust allocation, or thrusts directly
+    accepted_actions = ("x", "u")
+
     def state_action(self, x: np.ndarray) -> np.ndarray:
         """Action ``(dq, v)`` (same as the observation): (..., 13) -> (..., 12)."""
         return self.observation(x)

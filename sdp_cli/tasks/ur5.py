@@ -30,7 +30,7 @@ Policy conventions (Sec. IV-B): state control (``action = "x"``: the action is x
 the base class's identity :meth:`~Task.state_action`); the policy sees q as (cos q, sin q):
 ``observation(x) = (cos q, sin q, v)`` (18,) with its Jacobian ``(18, 12)`` w.r.t. the
 tangent (here plain) state. A predicted next state is turned into torques by RNEA
-(:meth:`Ur5Task.inverse_dynamics`), the exact inverse of the semi-implicit Euler step.
+(:meth:`Task.inverse_dynamics`), the exact inverse of the semi-implicit Euler step.
 """
 
 from __future__ import annotations
@@ -198,17 +198,3 @@ class Ur5Task(Task):
         J[..., n + idx, idx] = np.cos(q)
         J[..., 2 * n + np.arange(nv), n + np.arange(nv)] = 1.0
         return J
-
-    def inverse_dynamics(self, x: np.ndarray, x_next: np.ndarray) -> np.ndarray:
-        """Torques taking ``x`` to (the velocity of) ``x_next`` in one step: (..., 12) x2 -> (..., 6).
-
-        ``u = rnea(q, v, (v_next - v) / dt)``, clipped to the torque limits; the exact inverse
-        of :meth:`step` when unclipped (the configuration of ``x_next`` follows from ``v_next``).
-        """
-        x, x_next = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(x_next, dtype=float))
-        flat, flat_next = x.reshape(-1, self.nx), x_next.reshape(-1, self.nx)
-        U = np.empty((len(flat), self.nu))
-        for i, (xa, xb) in enumerate(zip(flat, flat_next)):
-            q, v = xa[: self.nq], xa[self.nq:]
-            U[i] = pin.rnea(self.model, self.data, q, v, (xb[self.nq:] - v) / self.dt)
-        return np.clip(U, self.u_lb, self.u_ub).reshape(x.shape[:-1] + (self.nu,))
