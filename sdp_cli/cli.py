@@ -56,6 +56,20 @@ def _task_help() -> str:
     return "Task name, one of: " + ", ".join(task_names()) + " (see `sdp tasks`)."
 
 
+ThreadsOpt = Annotated[int, typer.Option(
+    help="torch CPU threads of this process (default 1: the networks are tiny, one thread is fastest on a "
+         "busy or 2-core CPU, and results do not depend on the machine's core count).")]
+
+
+def set_threads(threads: int) -> None:
+    """Pin torch's intra-op threads (every command that runs a network calls this first)."""
+    if threads <= 0:
+        raise SdpError(f"--threads must be > 0, got {threads}")
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 _EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
                   "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
 _SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
@@ -76,11 +90,13 @@ def collect_cmd(
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
+    threads: ThreadsOpt = 1,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
     from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.progress import collect_progress
 
+    set_threads(threads)
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
     config = CollectConfig(task=task, n_traj=n_traj, seed=seed, max_iter=max_iter, max_attempts=max_attempts,
@@ -107,17 +123,13 @@ def rollout_cmd(
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
     device: Annotated[str, typer.Option(help="cpu, cuda or auto.")] = "cpu",
-    threads: Annotated[int, typer.Option(help="torch CPU threads (the U-Net is tiny: 1 is fastest on a busy or 2-core CPU).")] = 1,
+    threads: ThreadsOpt = 1,
 ) -> None:
     """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
-    import torch
-
     from sdp_cli.rollout import RolloutConfig, rollout
     from sdp_cli.train import resolve_device
 
-    if threads <= 0:
-        raise SdpError(f"--threads must be > 0, got {threads}")
-    torch.set_num_threads(threads)
+    set_threads(threads)
 
     path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
                       task_name=task, device=str(resolve_device(device)))
@@ -215,7 +227,7 @@ def train_cmd(
     save_at: Annotated[Optional[str], typer.Option("--save-at", help="Comma-separated epochs at which to keep a checkpoint, e.g. 1000,2000.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out (after a kill).")] = False,
     init: Annotated[Optional[Path], typer.Option(help="Start from this checkpoint (weights, EMA, normalizer).")] = None,
-    threads: Annotated[Optional[int], typer.Option(help="torch CPU threads (batches are gathered in memory; no loader workers needed).")] = None,
+    threads: ThreadsOpt = 1,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
 ) -> None:
     """Train a policy on a dataset (Algorithm 1, lines 11-23)."""
@@ -230,11 +242,7 @@ def train_cmd(
                        f"{down_dims!r}") from None
     if not dims or min(dims) <= 0:
         raise SdpError(f"--down-dims must be positive integers, got {down_dims!r}")
-    if threads is not None:
-        if threads <= 0:
-            raise SdpError(f"--threads must be > 0, got {threads}")
-        import torch
-        torch.set_num_threads(threads)
+    set_threads(threads)
     cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
                       K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
                       sobolev_fraction=sobolev_fraction, sobolev_cap=sobolev_cap, action=action, save_at=save,
@@ -278,11 +286,13 @@ def loop_cmd(
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
     sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,
+    threads: ThreadsOpt = 1,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
     from sdp_cli.loop import LoopConfig, run_loop
     from sdp_cli.train import resolve_device
 
+    set_threads(threads)
     opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size),
                               ("sobolev_cap", sobolev_cap)) if v is not None}
     cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),

@@ -265,6 +265,9 @@ class DaskExecutor(Executor):
             raise SdpError("--executor dask needs dask.distributed: pip install 'dask[distributed]'") from None
         self.scheduler, self.cluster, self.client = scheduler, None, None
         self._nthreads, self._nthreads_at = 0, -1e9
+        # a LocalCluster's nannies write their pre-spawn environment (OMP_NUM_THREADS=1, ...) into
+        # this process's os.environ, at start and at every worker restart: restored after both
+        self._environ = dict(os.environ)
         try:
             if scheduler:
                 self.client = Client(scheduler, timeout=connect_timeout, set_as_default=False)
@@ -273,6 +276,7 @@ class DaskExecutor(Executor):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                             dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
                 self.client = Client(self.cluster, set_as_default=False)
+                self._restore_environ()
         except (OSError, TimeoutError, ValueError) as e:
             self.close()
             where = f"the dask scheduler at {scheduler}" if scheduler else "a dask LocalCluster"
@@ -380,6 +384,12 @@ class DaskExecutor(Executor):
         if self.cluster is not None:
             self.cluster.close()
             self.cluster = None
+        self._restore_environ()
+
+    def _restore_environ(self) -> None:
+        if os.environ != self._environ:
+            os.environ.clear()
+            os.environ.update(self._environ)
 
 
 # ------------------------------------------------------------------ factory

@@ -20,6 +20,7 @@ from sdp_cli.data.artifacts import load_npz, save_npz
 from sdp_cli.data.collect import RESULT_KEYS
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
+from sdp_cli.tasks.base import check_task_params
 
 #: winner codes stored in ``inst_winner``
 WIN_NONE, WIN_POLICY, WIN_BASELINE = -1, 0, 1
@@ -41,10 +42,11 @@ def argmin_cost(candidates: Sequence) -> int | None:
 
 
 def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
-    """A policy rollout worth warm-starting from: finite, and not diverged (cost <= 1e5)."""
-    from sdp_cli.rollout import DIVERGENCE_COST
+    """A policy rollout worth warm-starting from: finite, not diverged (states within
+    ``DIVERGENCE_STATE``, cost <= ``DIVERGENCE_COST``)."""
+    from sdp_cli.rollout import DIVERGENCE_COST, DIVERGENCE_STATE
 
-    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))):
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))) or np.abs(X).max() > DIVERGENCE_STATE:
         return False
     with np.errstate(all="ignore"):
         cost = task.cost(X, U, xi)
@@ -123,6 +125,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         raise SdpError(f"max_iter must be > 0, got {max_iter}")
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
+    check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")
     n = len(arrays["xi"])
     own = not isinstance(executor, Executor)
     if own and not scheduler:

@@ -10,7 +10,8 @@ saturated at the control bounds (the actuators cannot do more); state policies p
 ``g(x_{t+1}), ...`` and the controls come from :meth:`Task.controls_from_action` (inverse
 dynamics: RNEA for fully actuated arms, thrust allocation for the quadrotor).
 
-Divergence (a NaN state, or a cost above ``DIVERGENCE_COST``) is recorded, not raised:
+Divergence (a NaN state, a state coordinate above ``DIVERGENCE_STATE``, or a cost above
+``DIVERGENCE_COST``) is recorded, not raised:
 the instance's remaining states are NaN and ``diverged`` is set.
 """
 
@@ -30,6 +31,9 @@ from sdp_cli.errors import SdpError
 from sdp_cli.tasks import Task
 
 DIVERGENCE_COST = 1e5
+#: a state coordinate beyond this (rad, rad/s, m, m/s) is a diverged simulation: the faithful
+#: pendulum costs do not see velocities, so a cost threshold alone misses a spinning pendulum
+DIVERGENCE_STATE = 1e4
 #: seed offset of the test set: test xi come from rng([TEST_SEED_BASE + seed, i]), disjoint
 #: from training collections that use small seeds rng([seed, i])
 TEST_SEED_BASE = 1_000_000
@@ -112,7 +116,7 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
                 else:
                     u = task.controls_from_action(x, a)
                 x_next = step_batch(task, x, u)
-                bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > 1e8)
+                bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > DIVERGENCE_STATE)
                 U[idx, t + s] = u
                 X[idx, t + s + 1] = np.where(bad[:, None], np.nan, x_next)
                 u_prev[idx] = u

@@ -186,7 +186,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),
                         "T": int(task.T)},
             "init": str(init) if init is not None else (prev or {}).get("init"),
-            "steps_per_epoch": steps_per_epoch, "total_steps": total}
+            "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev)}
 
     def checkpoint(path: Path, with_state: bool = True):
         ema.store(net.parameters())

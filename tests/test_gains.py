@@ -5,13 +5,13 @@ from t (horizon T - t, warm-started from the tail, tight IPOPT), and compare the
 with K_t delta (sdp_cli.trajopt.verify). The requirement is a median relative error below 5%
 at steps where no control bound is active and at steps where one is; we measure ~1e-7.
 
-The pendulum tasks (|u| <= 25; the acrobot has one motor, on joint 2) never touch their bounds, so the clamped checks use a copy of
-each task with |u| <= 1 (same dynamics and costs), where the swing-up saturates the motors.
+The faithful pendulums (|u| <= 25, joint 1 of the
+double pendulum needs 29.4 N m to hold its arm horizontal) saturate their motors during the swing-up,
+so the same solutions serve the free-step and the clamped-step checks.
 """
 
 from __future__ import annotations
 
-import copy
 from types import SimpleNamespace
 
 import casadi as ca
@@ -24,8 +24,8 @@ from sdp_cli.trajopt import gains as G
 from sdp_cli.trajopt.ocp import stage_blocks
 from sdp_cli.trajopt.verify import check_dynamics_jacobians, check_gains
 
-PENDULUMS = ["pendulum", "double_pendulum", "double_pendulum-acrobot"]
-U_TIGHT = 1.0
+PENDULUMS = ["pendulum", "double_pendulum"]
+U_BOUND = 25.0
 
 
 def _solve(task, seed=0):
@@ -35,45 +35,36 @@ def _solve(task, seed=0):
     return res
 
 
-def _tight(name):
-    task = copy.copy(get_task(name))
-    task.u_lb, task.u_ub = -U_TIGHT * np.ones(task.nu), U_TIGHT * np.ones(task.nu)
-    return task
-
-
 @pytest.fixture(scope="module")
 def free_solutions():
     return {name: _solve(get_task(name)) for name in PENDULUMS}
 
 
 @pytest.fixture(scope="module")
-def tight_solutions():
-    out = {}
-    for name in PENDULUMS:
-        task = _tight(name)
-        out[name] = (task, _solve(task))
-    return out
+def tight_solutions(free_solutions):
+    return {name: (get_task(name), free_solutions[name]) for name in PENDULUMS}
 
 
 @pytest.mark.parametrize("name", PENDULUMS)
 def test_gains_match_finite_differences_at_free_steps(free_solutions, name):
     task, res = get_task(name), free_solutions[name]
-    assert not res.clamped.any()  # |u| <= 25 is never active on these tasks
-    checks = check_gains(task, res, [0, 3, 8, 15, 30, 60, 90, 98], eps=1e-4)
+    free = np.flatnonzero(~res.clamped.any(1))
+    assert len(free) >= 20
+    checks = check_gains(task, res, list(free[np.linspace(0, len(free) - 1, 8).round().astype(int)]), eps=1e-4)
     assert all(c.converged for c in checks)
     err = np.array([c.rel_error for c in checks])
     assert np.median(err) < 0.01 and err.max() < 0.05, err
     assert max(np.linalg.norm(c.du_fd) for c in checks) > 1e-6  # the check is not vacuous
 
 
-@pytest.mark.parametrize("name", PENDULUMS)
+@pytest.mark.parametrize("name", ["double_pendulum"])   # the single pendulum swings up unsaturated
 def test_gains_match_finite_differences_at_clamped_steps(tight_solutions, name):
     task, res = tight_solutions[name]
     cl = res.clamped
     steps = np.flatnonzero(cl.any(1))
-    assert len(steps) >= 3, "the |u| <= 1 swing-up should saturate"
+    assert len(steps) >= 3, "the |u| <= 25 swing-up should saturate"
     # U at a clamped control sits on its bound; its gain row is exactly zero
-    assert np.allclose(np.abs(res.U[cl]), U_TIGHT, atol=1e-5)
+    assert np.allclose(np.abs(res.U[cl]), U_BOUND, atol=1e-5)
     assert np.all(res.K[cl] == 0.0)
     mixed = np.flatnonzero(cl.any(1) & ~cl.all(1))
     if task.nu > 1:
@@ -94,7 +85,7 @@ def test_gains_match_finite_differences_at_clamped_steps(tight_solutions, name):
 @pytest.mark.parametrize("name", PENDULUMS)
 def test_dynamics_jacobians_and_closed_loop(free_solutions, tight_solutions, name):
     task = get_task(name)
-    for res in (free_solutions[name], tight_solutions[name][1]):
+    for res in (free_solutions[name],):
         errA, errB = check_dynamics_jacobians(task, res, [0, 7, 33, 99])
         assert errA < 1e-6 and errB < 1e-6
         np.testing.assert_allclose(res.Phi, res.A + np.einsum("tij,tjk->tik", res.B, res.K), atol=1e-12)

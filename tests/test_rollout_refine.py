@@ -138,9 +138,11 @@ def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
 
 
 def test_a_diverged_finite_rollout_is_no_warm_start():
-    """A DP rollout of the fig2 run (double pendulum, cost 3e14, states up to 1.6e7, all finite):
+    """A DP rollout of the fig2 run (old double pendulum, cost 3e14, states up to 1.6e7, all finite):
     fatrop never returned from this guess (its line search looped for > 25 min), so refine must
-    not start the solver from it, and TO alone still gives the instance a converged solution."""
+    not start the solver from it, and TO alone still gives the instance a converged solution.
+    On the faithful double pendulum its cost is small (the costs do not see velocities): the state
+    bound DIVERGENCE_STATE rejects it."""
     from pathlib import Path
 
     from sdp_cli.refine import usable_guess

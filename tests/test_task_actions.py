@@ -32,8 +32,6 @@ def test_every_task_accepts_its_default_action_and_torque():
     for name in task_names():
         task = get_task(name)
         assert task.action in task.accepted_actions and "u" in task.accepted_actions
-        if task.nu < task.nv and name.startswith("double_pendulum"):
-            assert task.accepted_actions == ("u",)   # underactuated: no inverse dynamics
 
 
 @pytest.mark.parametrize("name,action", CASES, ids=[f"{n}-{a}" for n, a in CASES])
@@ -53,14 +51,17 @@ def test_actions_from_a_trajectory_reproduce_its_controls_and_states(name, actio
 
 
 def test_unaccepted_action_is_refused(tmp_path):
-    task = get_task("double_pendulum-acrobot")
-    with pytest.raises(SdpError, match="accepts actions u"):
-        task_with_action(task, "x")
+    from sdp_cli.tasks.pendulum import PendulumTask
+
+    with pytest.raises(SdpError, match="accepts actions u; got 'x'"):
+        task_with_action(PendulumTask(n_links=2, actuated=(1,), name="acrobot-test"), "x")   # underactuated
+    with pytest.raises(SdpError, match="accepts actions x, u; got 'q'"):
+        task_with_action(get_task("quadrotor-0"), "q")
     from synthetic_dataset import write_dataset
 
-    data = write_dataset(tmp_path / "d.npz", "double_pendulum-acrobot", n_traj=1, T=20)
+    data = write_dataset(tmp_path / "d.npz", "pendulum", n_traj=1, T=20)
     r = CliRunner().invoke(app, ["train", "--data", str(data), "--method", "dp", "--epochs", "1", "--horizon", "8",
-                                 "--down-dims", "8,16", "--action", "q", "--out", str(tmp_path / "run"),
+                                 "--down-dims", "8,16", "--action", "w", "--out", str(tmp_path / "run"),
                                  "--no-progress"])
-    assert r.exit_code == 1 and "accepts actions u" in r.output and "Traceback" not in r.output
+    assert r.exit_code == 1 and "accepts actions u, x, q, v" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "run").exists()

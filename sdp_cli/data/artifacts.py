@@ -70,7 +70,31 @@ def provenance() -> dict[str, Any]:
         except metadata.PackageNotFoundError:
             versions[pkg] = None
     return {"versions": versions, "git_rev": git_revision(), "python": platform.python_version(),
-            "platform": platform.platform()}
+            "platform": platform.platform(), "cpu_model": _cpu_model()}
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def runtime_provenance() -> dict[str, Any]:
+    """:func:`provenance` plus what can change within a process: torch's CPU thread count and the
+    CUDA device (when torch is loaded). Timing-free: equal for equal settings."""
+    import sys
+
+    out = dict(provenance())
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        out["torch_threads"] = torch.get_num_threads()
+        out["cuda_device"] = torch.cuda.get_device_name() if torch.cuda.is_available() else None
+    return out
 
 
 def _json_default(o):
@@ -81,6 +105,12 @@ def _json_default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
@@ -96,6 +126,7 @@ def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
             writer(f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; artifacts get the usual permissions
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -108,7 +139,7 @@ def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
     """Atomically write ``arrays`` plus a metadata record of ``kind`` to ``path``."""
     meta = {"kind": kind, "format_version": FORMAT_VERSION,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "provenance": provenance(), "config": config or {}, **extra_meta}
+            "provenance": runtime_provenance(), "config": config or {}, **extra_meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     payload["__meta__"] = np.array(json.dumps(meta, default=_json_default))
     return atomic_write_bytes(path, lambda f: np.savez(f, **payload))

@@ -32,6 +32,7 @@ from sdp_cli.data.artifacts import load_npz
 from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import Task, get_task
+from sdp_cli.tasks.base import check_task_params
 
 REQUIRED = ("X", "U", "xi")
 GAIN_KEYS = ("K", "Phi")
@@ -51,16 +52,8 @@ def task_for_dataset(meta: dict) -> Task:
     if not name:
         raise SdpError("dataset has no task name in its metadata")
     task = get_task(name, **task_options_of(meta))
-    stored = meta.get("task_params")
-    if stored is not None and _jsonish(task.params()) != _jsonish(stored):
-        raise SdpError(f"dataset task parameters {stored} do not match task {name!r} as built here "
-                       f"({task.params()})")
+    check_task_params(task, meta.get("task_params"), "dataset")
     return task
-
-
-def _jsonish(d):
-    import json
-    return json.loads(json.dumps(d, sort_keys=True, default=float))
 
 
 def load_dataset(path: str | Path, require_gains: bool = True, task_name: str | None = None):

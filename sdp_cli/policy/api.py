@@ -9,6 +9,7 @@ from sdp_cli.data.chunks import task_with_action
 from sdp_cli.policy.checkpoint import load_checkpoint, net_from_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.tasks import Task, get_task
+from sdp_cli.tasks.base import check_task_params
 
 
 def _t(a, device) -> torch.Tensor:
@@ -25,6 +26,7 @@ class Policy:
         self.method = self.config.method
         self.action = ck["action"]
         self.task: Task = get_task(ck["task"], **(ck.get("task_options") or {}))
+        check_task_params(self.task, ck.get("task_params"), "policy checkpoint")
         if self.config.is_diffusion:   # the policy's action variable may differ from the task's default
             self.task = task_with_action(self.task, self.action)
         self.task_name = ck["task"]

@@ -3,7 +3,8 @@
 Content (a dict of plain types and tensors, loadable with ``weights_only=True``):
 ``format``, ``format_version``, ``created``, ``method``, ``config`` (full :class:`TrainConfig`),
 ``dims`` (n_action, n_obs, n_xi, ndx), ``action``, ``task``, ``task_options``, ``task_params``,
-``dataset`` (path, sha256 fingerprint, n_traj, T), ``provenance`` (versions, git revision),
+``dataset`` (path, sha256 fingerprint, n_traj, T), ``provenance`` (versions, git revision, CPU model,
+torch thread count, CUDA device), ``device``,
 ``epoch``, ``step``, ``total_steps``, ``finished``, ``model`` (weights + normalizer buffers),
 ``ema_model`` (same keys, EMA weights) and ``train_state`` (optimizer, LR schedule, EMA
 internals, RNG state, metrics rows) for ``--resume``.
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from sdp_cli.data.artifacts import atomic_write_bytes, provenance
+from sdp_cli.data.artifacts import atomic_write_bytes, runtime_provenance
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
 
@@ -39,7 +40,7 @@ def save_checkpoint(path: str | Path, payload: dict) -> Path:
     """Atomically write ``payload`` (adds format, version, created, provenance)."""
     payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
                "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-               "provenance": provenance(), **payload}
+               "provenance": runtime_provenance(), **payload}
     buf = io.BytesIO()
     torch.save(payload, buf)
     return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))

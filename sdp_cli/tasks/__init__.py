@@ -46,12 +46,6 @@ def _register_builtin() -> None:
              "single pendulum swing-up, torque control, |u| <= 25")
     register("double_pendulum", lambda **kw: PendulumTask(n_links=2, **kw),
              "double pendulum swing-up, torque control, |u| <= 25 per joint")
-    register("double_pendulum-pendubot",
-             lambda **kw: PendulumTask(n_links=2, actuated=(0,), name="double_pendulum-pendubot", **kw),
-             "double pendulum swing-up, only joint 1 actuated (pendubot), |u| <= 25")
-    register("double_pendulum-acrobot",
-             lambda **kw: PendulumTask(n_links=2, actuated=(1,), name="double_pendulum-acrobot", **kw),
-             "double pendulum swing-up, only joint 2 actuated (acrobot), |u| <= 25")
     _register_ur5_quadrotor()
 
 

@@ -22,6 +22,7 @@ Gains and state Jacobians live in the tangent space: ``K_t (nu, ndx)``,
 from __future__ import annotations
 
 import functools
+import hashlib
 from abc import ABC, abstractmethod
 
 import casadi as ca
@@ -29,6 +30,7 @@ import numpy as np
 import pinocchio as pin
 
 from sdp_cli.dynamics.casadi_model import CasadiModel
+from sdp_cli.errors import SdpError
 
 
 class Task(ABC):
@@ -79,8 +81,30 @@ class Task(ABC):
                 "n_xi": self.n_xi, "T": self.T, "dt": self.dt}
 
     def params(self) -> dict:
-        """Everything that defines this task instance (stored in artifacts)."""
-        return {"name": self.name, "dt": self.dt, "T": self.T}
+        """Everything that defines this task instance (stored in artifacts).
+
+        ``model_id`` identifies the problem itself (:attr:`model_id`): an artifact made for
+        another definition of the same task name is refused (:func:`check_task_params`).
+        """
+        return {"name": self.name, "dt": self.dt, "T": self.T, "model_id": self.model_id}
+
+    @functools.cached_property
+    def model_id(self) -> str:
+        """Hash of the robot model's numbers (joint types and placements, inertias, limits,
+        gravity) and of the OCP's casadi functions (dynamics, costs with their weights,
+        constraints): changes whenever a constant of the problem does."""
+        h = hashlib.sha256()
+        m = self.model
+        h.update(" ".join(j.shortname() for j in m.joints).encode())
+        for p in m.jointPlacements:
+            h.update(np.asarray(p.homogeneous, dtype=np.float64).tobytes())
+        for i in m.inertias:
+            h.update(np.r_[i.mass, i.lever, np.asarray(i.inertia).ravel()].astype(np.float64).tobytes())
+        for a in (m.effortLimit, m.gravity.linear, self.u_lb, self.u_ub):
+            h.update(np.asarray(a, dtype=np.float64).tobytes())
+        for f in (self.f_step, self.f_running_cost, self.f_terminal_cost, self.f_state_constraints):
+            h.update(f.serialize().encode())
+        return h.hexdigest()[:16]
 
     # --------------------------------------------------- task distribution P
     @abstractmethod
@@ -280,7 +304,7 @@ class Task(ABC):
         G = {"x": eye, "q": eye[: self.nv], "v": eye[self.nv:]}[self.action]
         return np.broadcast_to(G, x.shape[:-1] + G.shape).copy()
 
-    #: goal distance under which a rollout counts as having reached the goal
+    #: goal distance under which a rollout counts as having reached the goal (m)
     goal_tolerance: float = 0.05
 
     def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
@@ -299,3 +323,23 @@ class Task(ABC):
             h = self.f_state_constraints.map(len(X) - 1)(X[1:].T, np.repeat(xi[:, None], len(X) - 1, 1)).full()
             viol = max(viol, float(np.max(h, initial=0.0)))
         return viol
+
+
+def check_task_params(task: Task, stored: dict | None, what: str) -> None:
+    """Refuse an artifact (``what``) whose recorded task parameters differ from ``task`` as built here."""
+    if stored is None:
+        return
+    import json
+
+    def norm(d):
+        return json.loads(json.dumps(d, sort_keys=True, default=float))
+
+    here = task.params()
+    if norm(here) == norm(stored):
+        return
+    if stored.get("model_id") != here["model_id"]:
+        raise SdpError(f"{what} was made for another definition of task {task.name!r} (model/cost identity "
+                       f"{stored.get('model_id', 'unrecorded')}, this sdp builds {here['model_id']}); "
+                       f"re-create it with this version")
+    diff = sorted(k for k in set(here) | set(stored) if norm(here.get(k)) != norm(stored.get(k)))
+    raise SdpError(f"{what} task parameters differ from task {task.name!r} as built here in: {', '.join(diff)}")

@@ -1,28 +1,27 @@
-"""Pendulum swing-up tasks: ``pendulum`` (1 joint) and ``double_pendulum`` (2 joints).
+"""Pendulum swing-up tasks: ``pendulum`` (1 link) and ``double_pendulum`` (2 links), the paper's.
 
-Model: example-robot-data's ``double_pendulum`` (two small links, joints about x), with a
-``tip`` frame added at the end of the second link (0.22 m above joint 2, the end of the
-link mesh). The single pendulum is the same model with joint 2 locked at 0
-(``pin.buildReducedModel``), so its tip is 0.32 m from joint 1.
+Model (source: aligator ``examples/pendulum.py``, ``create_pendulum(N)``, re-implemented with
+Pinocchio alone): N revolute joints about x; each body is a 1 kg sphere of radius 0.1 m placed
+1 m along +z from its joint; joint k+1 sits at body k; an ``end_effector`` frame at the last
+body. q = 0 is upright (gravity along -z). With two links, joint 1 needs 29.4 N m to hold the
+straight arm horizontal, so the bound |u| <= 25 (paper, Sec. IV-C) is active in every solution.
 
-q = 0 is the upright configuration. P: q0 is drawn around the downward position
-(joint 1 uniform in [pi - 0.5, pi + 0.5], joint 2 uniform in [-0.5, 0.5]), v0 = 0;
-xi = x0 (nx,). Actuated joints have |u| <= 25: both for ``double_pendulum``; only joint 1
-for ``double_pendulum-pendubot``, only joint 2 for ``double_pendulum-acrobot`` (crocoddyl's
-``ActuationModelDoublePendulum`` with ``actLink`` 1 or 2), where u (1,) maps to tau = S u.
+Costs (source: aligator's ``QuadraticResidualCost`` = 1/2 r^T W r, running weights multiplied by
+dt as in the example; weights of the paper's pendulums), ee = end-effector position, goal = ee
+at q = 0, i.e. (0, 0, N):
+    l_t = dt * 1/2 (10 ||ee(x_t) - goal||^2 + 0.1 ||u_t||^2)
+    l_T = 1/2 * 10 ||ee(x_T) - goal||^2           (no dt, no velocity term)
+dt = 0.01 s, T = 100 (aligator example: dt 0.01).
 
-The fully actuated double pendulum is easy for the optimizer (about 20 iterations, every
-solve converges, mean cost about 12 on our test set): the links are light (|M| ~ 0.015 kg m^2)
-and the solution whips them up within a few steps. The paper's figures (TO alone: mean cost
-50, ~900 iterations, 80% failures) are closer to the underactuated variants. bench/trajopt.py,
-20 instances from the naive guess (fatrop): fully actuated 22.8 iterations, mean cost 12.9;
-pendubot 60.6 iterations, 35.6; acrobot 210 iterations (some near the 1000 cap), 36.3.
-
-Costs (summed per step, not multiplied by dt), ee = tip position, goal = tip at q = 0:
-    l_t = 10 ||ee(x_t) - goal||^2 + 0.1 ||u_t||^2
-    l_T = 100 ||ee(x_T) - goal||^2 + 1.0 ||v_T||^2   (our choice: hold the upright pose)
-Naive guess: q linearly interpolated from q0 to the nearest upright configuration
+P (ours, as before): q0 around the downward position, joint 1 uniform in [pi - 0.5, pi + 0.5],
+joint 2 uniform in [-0.5, 0.5], v0 = 0; xi = x0 (nx,).
+Naive guess (ours): q linearly interpolated from q0 to the nearest upright configuration
 (multiples of 2 pi), v the constant velocity of that line, u = 0.
+Success (ours, stated before any run): the end effector within ``GOAL_TOLERANCE`` = 0.1 m of
+the goal at T (5% of the double pendulum's 2 m reach).
+
+``PendulumTask(actuated=...)`` builds underactuated variants (u (1,) mapped to tau = S u); none is
+registered: on this model with |u| <= 25 on one joint, fatrop fails from the naive guess.
 """
 
 from __future__ import annotations
@@ -33,28 +32,34 @@ import pinocchio as pin
 
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks.base import Task
-from sdp_cli.tasks.robots import load_model
 
-U_MAX = 25.0
-TIP_OFFSET = 0.22  # m, along z of link 2
-W_GOAL, W_U, W_GOAL_T, W_V_T = 10.0, 0.1, 100.0, 1.0
+U_MAX = 25.0            # N m, paper Sec. IV-C
+BODY_MASS, BODY_RADIUS, LINK_LENGTH = 1.0, 0.1, 1.0   # aligator create_pendulum
+W_GOAL, W_U, W_GOAL_T = 10.0, 0.1, 10.0               # paper / aligator-style 1/2 r^T W r
+GOAL_TOLERANCE = 0.1    # m (ours)
+EE_FRAME = "end_effector"
 
 
-def pendulum_model(n_links: int) -> pin.Model:
-    """The double pendulum with a ``tip`` frame; joint 2 locked at 0 if ``n_links == 1``."""
-    model = load_model("double_pendulum")
-    j2 = model.getJointId("joint2")
-    model.addFrame(pin.Frame("tip", j2, pin.SE3(np.eye(3), np.array([0.0, 0.0, TIP_OFFSET])),
-                             pin.FrameType.OP_FRAME))
-    if n_links == 1:
-        model = pin.buildReducedModel(model, [j2], pin.neutral(model))
+def create_pendulum(n_links: int) -> pin.Model:
+    """aligator's ``create_pendulum(N)``: a chain of N point-like 1 kg spheres on 1 m massless links."""
+    model = pin.Model()
+    parent, placement = 0, pin.SE3.Identity()
+    body = pin.SE3(np.eye(3), np.array([0.0, 0.0, LINK_LENGTH]))
+    for k in range(n_links):
+        joint = model.addJoint(parent, pin.JointModelRX(), placement, f"joint_{k + 1}")
+        model.appendBodyToJoint(joint, pin.Inertia.FromSphere(BODY_MASS, BODY_RADIUS), body)
+        model.effortLimit[joint - 1] = U_MAX
+        parent, placement = joint, body
+    model.addFrame(pin.Frame(EE_FRAME, parent, 0, body, pin.FrameType.OP_FRAME))
     return model
 
 
 class PendulumTask(Task):
     """Swing a single or double pendulum from a random downward position to upright."""
 
-    def __init__(self, n_links: int = 2, T: int = 100, dt: float = 0.02,
+    goal_tolerance = GOAL_TOLERANCE
+
+    def __init__(self, n_links: int = 2, T: int = 100, dt: float = 0.01,
                  init_spread: float = 0.5, actuated: tuple | None = None, name: str | None = None):
         if n_links not in (1, 2):
             raise SdpError(f"n_links must be 1 or 2, got {n_links}")
@@ -68,14 +73,14 @@ class PendulumTask(Task):
         self.name = name or ("pendulum" if n_links == 1 else "double_pendulum")
         self.n_links, self.T, self.dt, self.init_spread = n_links, int(T), float(dt), float(init_spread)
         self.actuated = actuated
-        self.model = pendulum_model(n_links)
+        self.model = create_pendulum(n_links)
         super().__init__()
         self.nu = len(actuated)
         self.S = np.zeros((self.nv, self.nu))  # tau = S u
         self.S[list(actuated), range(self.nu)] = 1.0
         self.n_xi = self.nx
         self.u_lb, self.u_ub = -U_MAX * np.ones(self.nu), U_MAX * np.ones(self.nu)
-        self.tip = self.model.getFrameId("tip")
+        self.tip = self.model.getFrameId(EE_FRAME)
         pin.framesForwardKinematics(self.model, self.data, np.zeros(self.nq))
         self.goal = self.data.oMf[self.tip].translation.copy()
 
@@ -110,18 +115,18 @@ class PendulumTask(Task):
         return np.hstack([Q, V]), np.zeros((self.T, self.nu))
 
     def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
-        """Tip distance to the upright tip position (m)."""
+        """End-effector distance to the upright end-effector position (m)."""
         pin.framesForwardKinematics(self.model, self.data, np.asarray(x[: self.nq], float))
         return float(np.linalg.norm(self.data.oMf[self.tip].translation - self.goal))
 
     def ee_position(self, q):
-        """casadi tip position (3,)."""
+        """casadi end-effector position (3,)."""
         return self.cmodel.frame_placement(q, self.tip)[1]
 
     def _running_cost(self, x, u, xi):
         e = self.ee_position(x[: self.nq]) - self.goal
-        return W_GOAL * ca.sumsqr(e) + W_U * ca.sumsqr(u)
+        return self.dt * 0.5 * (W_GOAL * ca.sumsqr(e) + W_U * ca.sumsqr(u))
 
     def _terminal_cost(self, x, xi):
         e = self.ee_position(x[: self.nq]) - self.goal
-        return W_GOAL_T * ca.sumsqr(e) + W_V_T * ca.sumsqr(x[self.nq:])
+        return 0.5 * W_GOAL_T * ca.sumsqr(e)

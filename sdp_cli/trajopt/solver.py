@@ -27,6 +27,8 @@ from sdp_cli.trajopt.ocp import Layout, build_nlp, nlp_functions, stage_blocks
 SOLVERS = ("fatrop", "ipopt")
 DEFAULT_SOLVER = "fatrop"
 DEFAULT_MAX_ITER = 1000
+#: largest magnitude of a guess entry the solver is started from
+GUESS_MAX = 1e6
 
 
 @dataclass
@@ -166,6 +168,10 @@ class TrajOptSolver:
             # never start the solver there: fatrop's line search loops forever from a non-finite iterate
             return self._failed(x0, xi, X_init, U_init, "not converged: the initial guess gives a non-finite "
                                 "cost or constraint (solver not started)", time.perf_counter() - t0)
+        if np.abs(w0).max() > GUESS_MAX:
+            # nor from a finite but absurd one (states of 1e7 and more: seen looping for > 25 min)
+            return self._failed(x0, xi, X_init, U_init, f"not converged: the initial guess has entries above "
+                                f"{GUESS_MAX:.0e} (solver not started)", time.perf_counter() - t0)
         try:
             r = self._nlpsol(x0=w0, p=p, lbx=self._lbx, ubx=self._ubx,
                              lbg=self._lbg, ubg=self._ubg)
