@@ -178,6 +178,9 @@ def evaluate_cmd(
             raise SdpError(f"--tag must be KEY=VALUE, got {t!r}")
         k, v = t.split("=", 1)
         extra[k] = v
+    from sdp_cli.data.artifacts import check_writable
+
+    check_writable(out, metrics)   # both outputs, before writing either
     row = evaluation_row(rollouts, refined, extra)
     write_evaluation([row], out)
     if metrics is not None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, load_npz
 from sdp_cli.errors import SdpError
 
 
@@ -30,6 +30,9 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
     r, rmeta = load_npz(rollouts, kind="rollout")
+    missing = [k for k in ("cost", "reached", "diverged", "max_violation", "rollout_time") if k not in r]
+    if missing or not isinstance(rmeta.get("config"), dict):
+        raise SdpError(f"corrupt rollout artifact {rollouts}: missing {', '.join(missing) or 'config'}")
     pcfg = rmeta.get("policy_config", {}) or {}
     cost = np.asarray(r["cost"], float)
     row = {
@@ -47,8 +50,16 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
     }
     if refined is not None:
         d, dmeta = load_npz(refined, kind="dataset")
+        inst = ("inst_pol_converged", "inst_base_converged", "inst_pol_iterations", "inst_base_iterations",
+                "inst_pol_cost", "inst_base_cost", "inst_pol_time", "inst_base_time")
+        if "inst_winner" in d and any(k not in d for k in inst):
+            raise SdpError(f"corrupt refine artifact {refined}: missing per-instance records")
         if "inst_winner" not in d:
             raise SdpError(f"{refined} is not the output of `sdp refine` (no per-instance records)")
+        want = (dmeta.get("config") or {}).get("rollouts_sha256")
+        if want is not None and want != file_sha256(rollouts):
+            raise SdpError(f"{refined} refines another rollout artifact ({dmeta['config'].get('rollouts')}), "
+                           f"not {rollouts}")
         if len(d["inst_winner"]) != len(cost):
             raise SdpError(f"{refined} refines {len(d['inst_winner'])} instances, {rollouts} has {len(cost)}")
         pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)

@@ -68,6 +68,32 @@ class LoopConfig:
         from sdp_cli.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)
+        self.validate()
+
+    def validate(self) -> None:
+        """Everything checkable before any file is written: task, method, training options, T_a."""
+        from sdp_cli.policy.config import TrainConfig
+        from sdp_cli.tasks import get_task
+
+        task = get_task(self.task)
+        if self.max_iter <= 0:
+            raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
+        try:
+            tcfg = TrainConfig(method=self.method, epochs=self.epochs, seed=self.seed, T_h=self.horizon,
+                               **self.train_options)
+        except TypeError as e:
+            raise SdpError(f"invalid training option: {e}") from None
+        if tcfg.is_diffusion:
+            if self.horizon > task.T + 1:
+                raise SdpError(f"horizon {self.horizon} is longer than the task's T + 1 = {task.T + 1}")
+            hi = self.horizon - tcfg.T_o
+            for name, values in (("t_a", () if self.t_a is None else (self.t_a,)), ("eval_t_a", self.eval_t_a),
+                                 ("eval_t_a_last", self.eval_t_a_last)):
+                bad = [v for v in values if not 1 <= v <= hi]
+                if bad:
+                    raise SdpError(f"{name} {bad} outside [1, T_h - T_o] = [1, {hi}]")
+            if self.k_rollout is not None and not 1 <= self.k_rollout <= tcfg.K:
+                raise SdpError(f"k_rollout must be in [1, K] = [1, {tcfg.K}], got {self.k_rollout}")
 
     def n_traj_at(self, k: int) -> int:
         return int(self.n_traj[min(k, len(self.n_traj) - 1)])
@@ -158,7 +184,12 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     from sdp_cli.train import train
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SdpError(f"cannot create the loop folder {out}: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK):
+        raise SdpError(f"cannot write into the loop folder {out}: permission denied")
     check_resume(cfg, out)
     atomic_write_bytes(out / "loop_config.json", lambda f: f.write(_config_json(cfg).encode()))
     tables, prev_policy, datasets = [], None, []

@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from sdp_cli.data.artifacts import load_npz, save_npz
+from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz
 from sdp_cli.data.collect import RESULT_KEYS
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
@@ -123,6 +123,8 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
             raise SdpError(f"corrupt rollout artifact {rollouts}: missing {k}")
     if max_iter <= 0:
         raise SdpError(f"max_iter must be > 0, got {max_iter}")
+    if not meta.get("task"):
+        raise SdpError(f"corrupt rollout artifact {rollouts}: no task name in its metadata")
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
     check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")
@@ -169,7 +171,8 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         mean_base_time=float(np.mean(out_arrays["inst_base_time"])) if baseline else float("nan"))
     dims = task.dims()
     path = save_npz(out, out_arrays, kind="dataset",
-                    config={"rollouts": str(rollouts), "max_iter": max_iter, "baseline": baseline,
+                    config={"rollouts": str(rollouts), "rollouts_sha256": file_sha256(rollouts),
+                            "max_iter": max_iter, "baseline": baseline,
                             "workers": described.get("workers"),
                             "executor": described, "rollout_config": meta.get("config", {})},
                     task=task_name, task_params=task.params(), task_options=task_options, dims=dims,

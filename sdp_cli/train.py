@@ -118,6 +118,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         stored = TrainConfig.from_dict(prev["config"])
         if stored.method != cfg.method:
             raise SdpError(f"cannot resume: {ck_path} is a {stored.method!r} run, not {cfg.method!r}")
+        skip = {"checkpoint_every_s"} | (set(ARCH_FIELDS) if prev.get("init") else set())  # --init's win
+        changed = [f"{k}={getattr(cfg, k)!r} (run: {getattr(stored, k)!r})" for k in stored.to_dict()
+                   if k not in skip and stored.to_dict()[k] != cfg.to_dict()[k]]
+        if changed:
+            raise SdpError(f"cannot resume {ck_path} with other settings: {', '.join(changed)}; resume with the "
+                           f"run's options or train into another --out")
         cfg = stored
     init_ck = None
     if init is not None and prev is None:
@@ -180,7 +186,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         from sdp_cli.policy.diffusion import make_scheduler
         scheduler = make_scheduler(cfg)
     loss_fn = make_loss(cfg, scheduler)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SdpError(f"cannot create the run folder {out}: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK):
+        raise SdpError(f"cannot write into the run folder {out}: permission denied")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
             "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
             "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),

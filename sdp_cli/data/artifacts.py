@@ -107,6 +107,31 @@ def _json_default(o):
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (artifacts that belong together record each other's)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_writable(*paths: str | os.PathLike | None) -> None:
+    """``SdpError`` unless every output path's folder can be created and written (before any work)."""
+    for p in paths:
+        if p is None:
+            continue
+        parent = Path(p).parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SdpError(f"cannot write {p}: {e.strerror or e}") from None
+        if not os.access(parent, os.W_OK) or Path(p).is_dir():
+            raise SdpError(f"cannot write {p}: {'it is a folder' if Path(p).is_dir() else 'permission denied'}")
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -154,13 +179,17 @@ def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise SdpError(f"corrupt artifact {path}: {e}") from None
+        # numpy's own text may advise loading with allow_pickle: never pass that on
+        raise SdpError(f"corrupt artifact {path}: expected an sdp .npz archive of numeric arrays "
+                       f"({type(e).__name__})") from None
     if "__meta__" not in arrays:
         raise SdpError(f"corrupt artifact {path}: no __meta__ record (not written by sdp?)")
     try:
         meta = json.loads(str(arrays.pop("__meta__")))
     except json.JSONDecodeError as e:
         raise SdpError(f"corrupt artifact {path}: bad metadata ({e})") from None
+    if not isinstance(meta, dict):
+        raise SdpError(f"corrupt artifact {path}: its metadata is not a JSON object")
     if kind is not None and meta.get("kind") != kind:
         raise SdpError(f"{path} is a {meta.get('kind')!r} artifact, expected {kind!r}")
     if meta.get("format_version", 0) > FORMAT_VERSION:

@@ -24,7 +24,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from sdp_cli.data.artifacts import load_npz, save_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, load_npz, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
 from sdp_cli.tasks import Task, get_task
@@ -162,21 +162,34 @@ class PartialStore:
             if old != config.identity():
                 raise SdpError(f"partial results in {self.dir} come from a different configuration "
                                f"({old}); delete the folder or choose another --out")
-        else:
+        else:   # created with the first result, so that a run rejected before any solve leaves nothing
             try:
-                self.dir.mkdir(parents=True)
-                manifest.write_text(json.dumps(config.identity()))
+                out.parent.mkdir(parents=True, exist_ok=True)
             except OSError as e:
-                raise SdpError(f"cannot write to {self.dir}: {e.strerror or e}") from None
+                raise SdpError(f"cannot write to {out.parent}: {e.strerror or e}") from None
+            if not os.access(out.parent, os.W_OK):
+                raise SdpError(f"cannot write to {out.parent}: permission denied")
+
+    def _create(self) -> None:
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            ident = json.dumps(self.config.identity()).encode()
+            atomic_write_bytes(self.dir / "manifest.json", lambda f: f.write(ident))
+        except OSError as e:
+            raise SdpError(f"cannot write to {self.dir}: {e.strerror or e}") from None
 
     def path(self, index: int) -> Path:
         return self.dir / f"{index:06d}.npz"
 
     def save(self, result: dict) -> None:
+        if not (self.dir / "manifest.json").is_file():
+            self._create()
         save_npz(self.path(int(result["index"])), result, kind="solve", config=self.config.identity())
 
     def load_all(self) -> dict[int, dict]:
         done = {}
+        if not self.dir.is_dir():
+            return done
         for p in sorted(self.dir.glob("[0-9]*.npz")):
             arrays, meta = load_npz(p, kind="solve")
             if meta.get("config") != self.config.identity() or "index" not in arrays:
@@ -296,6 +309,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     task = get_task(config.task, **config.task_options)  # validates the name early
     if not isinstance(executor, Executor):
         check_executor_options(executor, workers, scheduler)  # bad options fail before any work
+    jobs = _Jobs(config, task)   # loads and checks the policy before anything is written
     store = PartialStore(out, config)
     done = store.load_all()
     t_start = time.perf_counter()
@@ -318,7 +332,6 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     cap = config.attempts_cap
     described = {"kind": "none (resumed complete)"}
     if kept_indices(done, config.n_traj) is None:
-        jobs = _Jobs(config, task)
         own = not isinstance(executor, Executor)
         ex = make_executor(executor, workers, scheduler) if own else executor
         try:

@@ -13,27 +13,18 @@ internals, RNG state, metrics rows) for ``--resume``.
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import io
 from pathlib import Path
 
 import torch
 
-from sdp_cli.data.artifacts import atomic_write_bytes, runtime_provenance
+from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, runtime_provenance  # noqa: F401 (re-export)
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
 
 FORMAT = "sdp-policy"
 FORMAT_VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
-
-
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> Path:
@@ -61,7 +52,9 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     try:
         ck = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unpickling failure is a corrupt file for the user
-        raise SdpError(f"corrupt checkpoint {p}: {type(e).__name__}: {e}") from None
+        # torch's own text advises weights_only=False (unsafe): never pass that on
+        raise SdpError(f"corrupt checkpoint {p}: expected an sdp policy checkpoint written by `sdp train` "
+                       f"({type(e).__name__})") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise SdpError(f"{p} is not an sdp policy checkpoint")
     if ck.get("format_version", 0) > FORMAT_VERSION:

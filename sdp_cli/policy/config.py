@@ -59,11 +59,27 @@ class TrainConfig:
         for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
             if getattr(self, name) <= 0:
                 raise SdpError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.checkpoint_every_s < float("inf"):
+            raise SdpError(f"checkpoint_every_s must be >= 0, got {self.checkpoint_every_s}")
+        for name in ("lr", "grad_clip", "ema_max_decay"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0 and v == v and v != float("inf")):
+                raise SdpError(f"{name} must be a finite number > 0, got {v}")
+        if not 0 <= self.weight_decay < float("inf"):
+            raise SdpError(f"weight_decay must be >= 0, got {self.weight_decay}")
+        if not self.ema_max_decay <= 1:
+            raise SdpError(f"ema_max_decay must be in (0, 1], got {self.ema_max_decay}")
+        if not (len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas)):
+            raise SdpError(f"betas must be two numbers in [0, 1), got {list(self.betas)}")
+        if self.warmup_steps is not None and self.warmup_steps < 0:
+            raise SdpError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
+        if any(e <= 0 for e in self.save_at):
+            raise SdpError(f"save_at epochs must be > 0, got {list(self.save_at)}")
         if not 0 < self.sobolev_fraction <= 1:
             raise SdpError(f"sobolev_fraction must be in (0, 1], got {self.sobolev_fraction}")
         if self.sobolev_fraction < 1 and self.sobolev_mode != "jvp":
             raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
-        if self.alpha_sobolev < 0:
+        if not 0 <= self.alpha_sobolev < float("inf"):
             raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
         if self.sobolev_cap is not None:
             if not 0 < self.sobolev_cap <= 1:
