@@ -1,6 +1,7 @@
 """Re-derive the threshold of tests/test_regression_small.py (the `small` experiment).
 
-    python bench/regression_threshold.py [--seeds 0,1,2,3,4] [--threads 1,2] [--jobs 2] [--out /tmp/regr]
+    python bench/regression_threshold.py [--seeds 0,1,2,3,4] [--threads 1,2] [--thread-seeds 0,1]
+                                         [--variants sdp,alpha0,flipped,dp] [--jobs 2] [--out /tmp/regr]
 
 Runs the `small` experiment's Algorithm 1 (pendulum, 2 iterations x 10 trajectories x 300 epochs,
 T_h 16, T_a 8, batch 128, 20 test instances; pipelines/small.yaml) with `sdp loop`, once per
@@ -72,13 +73,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--threads", default="1,2")
+    ap.add_argument("--thread-seeds", default=None, help="seeds also run at the other thread counts (default all)")
     ap.add_argument("--variants", default="sdp,alpha0,flipped,dp")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("/tmp/sdp-regression-threshold"))
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
     threads = [int(t) for t in a.threads.split(",")]
-    jobs = [(v, s, t) for v in a.variants.split(",") for s in seeds for t in (threads if v == "sdp" else [1])]
+    tseeds = seeds if a.thread_seeds is None else [int(s) for s in a.thread_seeds.split(",")]
+    jobs = [(v, s, t) for v in a.variants.split(",") for s in seeds
+            for t in (threads if v == "sdp" and s in tseeds else threads[:1])]
     a.out.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(a.jobs) as pool:
         rows = list(pool.map(lambda j: run_one(*j, a.out), jobs))

@@ -79,10 +79,15 @@ def test_casadi_step_and_costs_match_pinocchio():
         u = rng.uniform(task.u_lb, task.u_ub)
         np.testing.assert_allclose(np.asarray(task.f_step(x, u)).ravel(), task.step(x, u), atol=1e-10)
         e = task.ee_position_np(x[:6]) - task.target(xi)
+        # aligator ur5_reach.py weights; the tool twist from Pinocchio
+        pin.forwardKinematics(task.model, task.data, x[:6], x[6:])
+        pin.updateFramePlacements(task.model, task.data)
+        tw = pin.getFrameVelocity(task.model, task.data, task.ee, pin.LOCAL_WORLD_ALIGNED).vector
         np.testing.assert_allclose(float(task.f_running_cost(x, u, xi)),
-                                   10 * e @ e + 0.05 * x[6:] @ x[6:] + 1e-4 * u @ u, rtol=1e-12)
-        np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)), 1000 * e @ e + 10 * x[6:] @ x[6:],
+                                   0.01 * 0.5 * (1e-4 * x[:6] @ x[:6] + 1e-2 * x[6:] @ x[6:] + 1e-4 * u @ u),
                                    rtol=1e-12)
+        np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)),
+                                   0.5 * (100 * e @ e + 100 * tw @ tw + 1e-4 * x @ x), rtol=1e-10)
         np.testing.assert_allclose(np.asarray(ca.evalf(task.ee_position(ca.DM(x[:6])))).ravel(),
                                    task.ee_position_np(x[:6]), atol=1e-12)
 
@@ -154,10 +159,11 @@ def test_solution_and_gains_match_finite_differences():
     gaps = [task.difference(task.step(res.X[t], res.U[t]), res.X[t + 1]) for t in range(task.T)]
     assert np.abs(gaps).max() < 1e-8
     assert task.goal_distance(res.X[-1], xi) < task.goal_distance(res.X[0], xi) / 2
-    assert not res.clamped.any()
+    free = [t for t in (0, 6, 12) if not res.clamped[t].any()]   # (the 0.2 s reach saturates some steps)
+    assert len(free) >= 2
     errA, errB = check_dynamics_jacobians(task, res, [0, 10])
     assert errA < 1e-6 and errB < 1e-6
-    checks = check_gains(task, res, [0, 12], eps=1e-5)
+    checks = check_gains(task, res, free[:2], eps=1e-5)
     for c in checks:
         assert c.converged and c.rel_error < 1e-4, (c.t, c.rel_error)
         assert np.linalg.norm(c.du_K) > 1e-4  # a non-trivial direction

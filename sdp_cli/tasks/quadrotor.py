@@ -5,38 +5,40 @@ Model: example-robot-data's ``hector`` (free-flyer base, m = 1.477 kg, no CoM of
 ``q = (x, y, z, qx, qy, qz, qw)`` (nq = 7), ``v`` = body twist (linear, angular) in the body
 frame (nv = 6); state tangent ndx = 12 via Pinocchio's SE(3) ``integrate``/``difference``.
 
-Controls u = the 4 rotor thrusts [N], bounded ``0 <= u_i <= U_MAX = 6`` (hover: m g / 4 = 3.62 N,
-thrust-to-weight 1.66). Rotor geometry (the hector constants of crocoddyl's quadrotor
-example): "+" layout, rotors 1..4 at ``ARM = 0.1525`` m along
-+x, +y, -x, -y, drag-to-thrust ratio ``C_TAU = cm / cf = 1e-6 / 6.6e-5`` m, rotors 1, 3 spin
-so that their yaw torque is ``-C_TAU u``, rotors 2, 4 ``+C_TAU u``. The body wrench (force,
-torque) in the body frame (Pinocchio's generalized force of a free-flyer) is ``tau = ALLOC @ u``:
+Controls u = the 4 rotor thrusts [N], bounded ``0 <= u_i <= U_MAX = 5`` (aligator
+``quadrotor_obstacles.py``; hover m g / 4 = 3.62 N, thrust-to-weight 1.38). Rotor geometry (the
+hector constants of aligator's and crocoddyl's quadrotor examples): "+" layout, rotors 1..4 at
+``ARM = 0.1525`` m along +x, +y, -x, -y, drag-to-thrust ratio ``C_TAU = cm / cf = 1e-6 / 6.6e-5`` m,
+rotors 1, 3 spin so that their yaw torque is ``-C_TAU u``, rotors 2, 4 ``+C_TAU u``. The body
+wrench (force, torque) in the body frame (Pinocchio's generalized force of a free-flyer) is
+``tau = ALLOC @ u``:
 
     f = (0, 0, u1 + u2 + u3 + u4)
     m = (ARM (u2 - u4), ARM (u3 - u1), C_TAU (-u1 + u2 - u3 + u4))
 
-Arena (world frame, z up): start and goal at the same height ``z ~ U[0.8, 2.0]``; the start
-in ``x ~ U[-3, -1.5], y ~ U[-2, 2]``, the goal in ``x ~ U[1.5, 3], y ~ U[-2, 2]``, swapped
-with probability 1/2; both rejected unless at least ``CLEARANCE = 0.1`` m outside every
-inflated column. Start: identity orientation, zero velocity.
-Constraints h(x) <= 0 on x_1..x_T (real OCP constraints): floor ``z >= Z_FLOOR = 0.3``,
-ceiling ``z <= Z_CEIL = 2.5``, and for each vertical column (cx, cy, r) (infinite cylinder),
-``(R^2 - d^2) / (2 R) <= 0`` with d the horizontal distance of the base to the column axis
-and ``R = r + R_QUAD``, ``R_QUAD = 0.4`` m (the bounding radius of hector's collision mesh).
-Layouts (cx, cy, r) in ``COLUMNS``: 1 = a column (0, 0, 0.5); 3 = a row x = 0 at
-y = -1.8, 0, 1.8 (r = 0.3); 9 = a 3x3 grid x, y in {-1.5, 0, 1.5}^2 (r = 0.2): 0.3 m wide corridors,
-so that the straight line from start to goal usually crosses a column. The layout is fixed
-per task name (not part of xi). The optimizer reports a solve as converged only if these
-constraints hold within its tolerance; its feedback gains treat the active ones as
-equalities (:mod:`sdp_cli.trajopt.gains`), checked against finite differences in
-``tests/test_tasks_quadrotor.py``.
+Arena (world frame, z up; ranges ours): start and goal at the same height ``z ~ U[0.5, 1.5]``; the
+start in ``x ~ U[-2, -1], y ~ U[-1.5, 1.5]``, the goal in ``x ~ U[1, 2], y ~ U[-1.5, 1.5]``, swapped
+with probability 1/2; both rejected unless at least ``CLEARANCE = 0.1`` m outside every inflated
+column. Start: identity orientation, zero velocity.
+Constraints h(x) <= 0 on x_1..x_T (real OCP constraints; aligator 2022-2023): floor
+``z >= Z_FLOOR = 0``, ceiling ``z <= Z_CEIL = 2``, and for each vertical column (cx, cy, r)
+(infinite cylinder of aligator's radius r = 0.22 m), ``(R^2 - d^2) / (2 R) <= 0`` with d the
+horizontal distance of the base to the column axis and ``R = r + R_QUAD``, ``R_QUAD = 0.4`` m (the
+bounding radius of hector's collision mesh, aligator's margin). Layouts (ours: the paper gives
+none) in ``COLUMNS``: 1 = a column at the origin; 3 = a row x = 0 at y = -1.5, 0, 1.5; 9 = a 3x3
+grid x in {-1, 0, 1}, y in {-1.5, 0, 1.5}, so that the straight line from start to goal usually
+crosses a column. The layout is fixed per task name (not part of xi). The optimizer reports a
+solve as converged only if these constraints hold within its tolerance; its feedback gains treat
+the active ones as equalities (:mod:`sdp_cli.trajopt.gains`), checked against finite differences
+in ``tests/test_tasks_quadrotor.py``.
 
-Task parameters ``xi = (x0 (13), p_goal (3))``, ``n_xi = 16``. T = 150 steps of dt = 0.02 s.
-Costs (summed per step, time-invariant; e = p - p_goal, rot = (qx, qy, qz), i.e.
-||rot||^2 = sin^2(angle / 2), invariant to the quaternion sign):
-    l_t = 1 ||e||^2 + 0.1 ||v||^2 + 1 ||rot||^2 + 0.01 ||u - u_hover||^2
-    l_T = 100 ||e||^2 + 10 ||v||^2 + 10 ||rot||^2
-Naive guess: positions on the straight line start -> goal, identity orientation, v the
+Task parameters ``xi = (x0 (13), p_goal (3))``, ``n_xi = 16``. T = 180 steps of dt = 0.01 s
+(aligator: dt 0.01; T >= T_h + T_a = 48 of Fig. 4). Costs (aligator's weights, 1/2 r^T W r,
+running terms multiplied by dt, terminal = 12 x the running state weights without dt; e = p - p_goal,
+r = 2 (qx, qy, qz) = log3(R) to first order):
+    l_t = dt 1/2 (0.1 ||e||^2 + 1e-2 ||r||^2 + 1e-3 ||v||^2 + 0.1 ||u - u_hover||^2)
+    l_T = 12 * 1/2 (0.1 ||e||^2 + 1e-2 ||r||^2 + 1e-3 ||v||^2)
+Naive guess (ours): positions on the straight line start -> goal, identity orientation, v the
 constant velocity of that line (v_0 = 0), hover thrusts.
 
 Policy conventions (Sec. IV-B): state control; ``q`` is mapped to the tangent space,
@@ -62,14 +64,16 @@ from sdp_cli.tasks.robots import load_model
 
 ARM = 0.1525  # m, rotor distance to the CoM
 C_TAU = 1e-6 / 6.6e-5  # m, yaw drag torque per unit thrust (cm / cf)
-U_MIN, U_MAX = 0.0, 6.0  # N per rotor
-R_QUAD = 0.4  # m, bounding radius of the airframe
-Z_FLOOR, Z_CEIL = 0.3, 2.5  # m, bounds on the base height
-Z_RANGE = (0.8, 2.0)  # m, start/goal height
-START_X, GOAL_X, Y_RANGE = (-3.0, -1.5), (1.5, 3.0), (-2.0, 2.0)
-CLEARANCE = 0.1  # m, sampled positions keep this distance from inflated columns
-W_P, W_V, W_ROT, W_U = 1.0, 0.1, 1.0, 0.01
-W_P_T, W_V_T, W_ROT_T = 100.0, 10.0, 10.0
+U_MIN, U_MAX = 0.0, 5.0  # N per rotor (aligator quadrotor_obstacles.py: u in [0, u_lim = 5])
+R_QUAD = 0.4  # m, margin around columns: bounding radius of hector's collision mesh (aligator: its AABB radius)
+Z_FLOOR, Z_CEIL = 0.0, 2.0  # m, floor and ceiling on the base height (aligator 2022-2023 versions)
+COLUMN_RADIUS = 0.22  # m (aligator); column layouts below are ours (the paper gives none)
+Z_RANGE = (0.5, 1.5)  # m, start/goal height, inside floor and ceiling (ours)
+START_X, GOAL_X, Y_RANGE = (-2.0, -1.0), (1.0, 2.0), (-1.5, 1.5)  # m (ours)
+CLEARANCE = 0.1  # m, sampled positions keep this distance from inflated columns (ours)
+# costs (aligator quadrotor_obstacles.py, QuadraticResidualCost = 1/2 r^T W r, running weights x dt)
+W_P, W_ROT, W_V, W_U = 0.1, 1e-2, 1e-3, 1e-1
+W_TERMINAL = 12.0  # terminal state weights = W_TERMINAL x running ones, no dt (aligator: wterm *= 12)
 
 #: thrusts (4,) -> body wrench (force, torque) (6,)
 ALLOC = np.array([
@@ -84,9 +88,9 @@ ALLOC = np.array([
 #: number of columns -> (n, 3) array of (cx, cy, radius)
 COLUMNS = {
     0: np.zeros((0, 3)),
-    1: np.array([[0.0, 0.0, 0.5]]),
-    3: np.array([[0.0, y, 0.3] for y in (-1.8, 0.0, 1.8)]),
-    9: np.array([[x, y, 0.2] for x in (-1.5, 0.0, 1.5) for y in (-1.5, 0.0, 1.5)]),
+    1: np.array([[0.0, 0.0, COLUMN_RADIUS]]),
+    3: np.array([[0.0, y, COLUMN_RADIUS] for y in (-1.5, 0.0, 1.5)]),
+    9: np.array([[x, y, COLUMN_RADIUS] for x in (-1.0, 0.0, 1.0) for y in (-1.5, 0.0, 1.5)]),
 }
 
 
@@ -127,7 +131,7 @@ class QuadrotorTask(Task):
 
     action = "x"
 
-    def __init__(self, n_obstacles: int = 0, T: int = 150, dt: float = 0.02, name: str | None = None):
+    def __init__(self, n_obstacles: int = 0, T: int = 180, dt: float = 0.01, name: str | None = None):
         if n_obstacles not in COLUMNS:
             raise SdpError(f"obstacles must be one of {sorted(COLUMNS)}, got {n_obstacles}")
         if int(T) < 2:
@@ -153,8 +157,7 @@ class QuadrotorTask(Task):
         return {**super().params(), "n_obstacles": self.n_obstacles, "columns": self.columns.tolist(),
                 "arm": ARM, "c_tau": C_TAU, "u_bounds": [U_MIN, U_MAX], "r_quad": R_QUAD,
                 "z_floor": Z_FLOOR, "z_ceil": Z_CEIL,
-                "weights": {"p": W_P, "v": W_V, "rot": W_ROT, "u": W_U, "p_T": W_P_T, "v_T": W_V_T,
-                            "rot_T": W_ROT_T}}
+                "weights": {"p": W_P, "v": W_V, "rot": W_ROT, "u": W_U, "terminal": W_TERMINAL}}
 
     # --------------------------------------------------------------- distribution
     def clearance(self, p: np.ndarray) -> np.ndarray:
@@ -218,14 +221,17 @@ class QuadrotorTask(Task):
     def control_to_tau(self, u: np.ndarray) -> np.ndarray:
         return ALLOC @ np.asarray(u, dtype=float)
 
+    def _state_cost(self, x, xi):
+        """1/2 (W_P ||p - p_goal||^2 + W_ROT ||r||^2 + W_V ||v||^2) with r = 2 (qx, qy, qz), which equals
+        log3(R) to first order (aligator's state error residual on SO(3)) and is smooth everywhere."""
+        e = x[:3] - xi[self.nx: self.nx + 3]
+        return 0.5 * (W_P * ca.sumsqr(e) + W_ROT * 4 * ca.sumsqr(x[3:6]) + W_V * ca.sumsqr(x[self.nq:]))
+
     def _running_cost(self, x, u, xi):
-        e = x[0:3] - xi[self.nx:self.nx + 3]
-        return (W_P * ca.sumsqr(e) + W_V * ca.sumsqr(x[self.nq:]) + W_ROT * ca.sumsqr(x[3:6])
-                + W_U * ca.sumsqr(u - ca.DM(self.u_hover)))
+        return self.dt * (self._state_cost(x, xi) + 0.5 * W_U * ca.sumsqr(u - ca.DM(self.u_hover)))
 
     def _terminal_cost(self, x, xi):
-        e = x[0:3] - xi[self.nx:self.nx + 3]
-        return W_P_T * ca.sumsqr(e) + W_V_T * ca.sumsqr(x[self.nq:]) + W_ROT_T * ca.sumsqr(x[3:6])
+        return W_TERMINAL * self._state_cost(x, xi)
 
     def _state_constraints(self, x, xi):
         z = x[2]

@@ -14,14 +14,17 @@ The four variants come from two booleans (Sec. IV-B of the paper):
 - ``r_tgt`` (names with ``rtgt``): the target is the ``tool0`` position of a random
   configuration (joints uniform in ``[-pi, pi]``), kept when it is at least 0.1 m above the
   base plane and at least 0.2 m from the base's vertical axis (so reachable by
-  construction); otherwise the fixed target ``P_FIXED = (0.4, 0.3, 0.4)`` m.
+  construction); otherwise the fixed target ``P_FIXED = (0.15, 0.65, 0.5)`` m (aligator's).
 
 Task parameters ``xi = (q0 (6), v0 (6), p_target (3))``, ``n_xi = 15`` for every variant.
 Default horizon T = 200 steps of dt = 0.01 s (3 chunks of T_h = 64).
 
-Costs (summed per step, not multiplied by dt, time-invariant; e = tool0(q) - p_target):
-    l_t = 10 ||e||^2 + 0.05 ||v||^2 + 1e-4 ||u||^2
-    l_T = 1000 ||e||^2 + 10 ||v||^2
+Costs (aligator ``examples/ur5_reach.py``: 1/2 r^T W r, running weights multiplied by dt; the
+state regularization is to the neutral state x = 0; e = tool0(q) - p_target, twist = tool0's
+spatial velocity):
+    l_t = dt 1/2 (1e-4 ||q||^2 + 1e-2 ||v||^2 + 1e-4 ||u||^2)
+    l_T = 1/2 (100 ||e||^2 + 100 ||twist||^2 + 1e-4 ||x||^2)
+T = 200 and the r_init / r_tgt sampling are ours (Fig. 3 needs T >= T_h + T_a = 127).
 Naive guess ``Interpolate(x0, x_target)``: x_target = (q_ik, 0) with q_ik from damped
 least-squares position IK started at q0; q linearly interpolated, v its constant velocity
 (v_0 = v0), u from RNEA along the interpolation, clipped to the torque limits.
@@ -45,10 +48,13 @@ from sdp_cli.tasks.robots import load_model
 
 EE_FRAME = "tool0"
 Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
-P_FIXED = np.array([0.4, 0.3, 0.4])
+P_FIXED = np.array([0.15, 0.65, 0.5])  # m, aligator ur5_reach.py target
 INIT_SPREAD = 0.3  # rad, half-width of the small initial region (r_init = 0)
 TGT_MIN_Z, TGT_MIN_R = 0.1, 0.2  # m, random-target acceptance region
-W_EE, W_V, W_U, W_EE_T, W_V_T = 10.0, 0.05, 1e-4, 1000.0, 10.0
+# aligator ur5_reach.py (1/2 r^T W r; running weights x dt): running state regularization to the
+# neutral configuration and control regularization; terminal end-effector error, tool twist, state
+W_Q, W_V, W_U = 1e-4, 1e-2, 1e-4
+W_EE_T, W_TWIST_T, W_X_T = 100.0, 100.0, 1e-4
 
 #: task name -> (r_init, r_tgt)
 VARIANTS = {
@@ -84,7 +90,7 @@ class Ur5Task(Task):
     def params(self) -> dict:
         return {**super().params(), "r_init": self.r_init, "r_tgt": self.r_tgt, "ee_frame": EE_FRAME,
                 "init_spread": INIT_SPREAD, "p_fixed": P_FIXED.tolist(),
-                "weights": {"ee": W_EE, "v": W_V, "u": W_U, "ee_T": W_EE_T, "v_T": W_V_T}}
+                "weights": {"q": W_Q, "v": W_V, "u": W_U, "ee_T": W_EE_T, "twist_T": W_TWIST_T, "x_T": W_X_T}}
 
     # --------------------------------------------------------------- distribution
     def ee_position_np(self, q: np.ndarray) -> np.ndarray:
@@ -167,13 +173,22 @@ class Ur5Task(Task):
         """casadi tool0 position (3,)."""
         return self.cmodel.frame_placement(q, self.ee)[1]
 
+    def tool_twist(self, q, v):
+        """casadi spatial velocity of tool0 (linear, angular) in the world-aligned frame (6,)."""
+        R, p = self.cmodel.frame_placement(q, self.ee)
+        p_dot = ca.mtimes(ca.jacobian(p, q), v)
+        R_dot = ca.reshape(ca.mtimes(ca.jacobian(ca.vec(R), q), v), 3, 3)
+        w = ca.mtimes(R_dot, R.T)                       # skew(omega)
+        return ca.vertcat(p_dot, w[2, 1], w[0, 2], w[1, 0])
+
     def _running_cost(self, x, u, xi):
-        e = self.ee_position(x[: self.nq]) - xi[self.nx:self.nx + 3]
-        return W_EE * ca.sumsqr(e) + W_V * ca.sumsqr(x[self.nq:]) + W_U * ca.sumsqr(u)
+        q, v = x[: self.nq], x[self.nq:]
+        return self.dt * 0.5 * (W_Q * ca.sumsqr(q) + W_V * ca.sumsqr(v) + W_U * ca.sumsqr(u))
 
     def _terminal_cost(self, x, xi):
-        e = self.ee_position(x[: self.nq]) - xi[self.nx:self.nx + 3]
-        return W_EE_T * ca.sumsqr(e) + W_V_T * ca.sumsqr(x[self.nq:])
+        q, v = x[: self.nq], x[self.nq:]
+        e = self.ee_position(q) - xi[self.nx:self.nx + 3]
+        return 0.5 * (W_EE_T * ca.sumsqr(e) + W_TWIST_T * ca.sumsqr(self.tool_twist(q, v)) + W_X_T * ca.sumsqr(x))
 
     # ------------------------------------------------------------ policy maps
     @property
