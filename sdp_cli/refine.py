@@ -24,19 +24,23 @@ from sdp_cli.tasks.base import check_task_params
 
 #: winner codes stored in ``inst_winner``
 WIN_NONE, WIN_POLICY, WIN_BASELINE = -1, 0, 1
+#: relative cost difference under which two converged solves tie in ArgminCost
+TIE_RTOL = 1e-9
 
 
 def argmin_cost(candidates: Sequence) -> int | None:
     """Index of the converged candidate with the lowest cost; None if none converged.
 
     ``candidates`` are objects with ``converged`` and ``cost`` (e.g. ``SolveResult``);
-    ``None`` entries (candidates that were not computed) are skipped.
+    ``None`` entries (candidates that were not computed) are skipped. Costs within
+    ``TIE_RTOL`` of each other are a tie, won by the earlier candidate (the policy guess):
+    two solves that reach the same optimum differ by rounding (1e-13), which must not decide.
     """
     best, best_cost = None, np.inf
     for i, c in enumerate(candidates):
         if c is None or not bool(c.converged) or not np.isfinite(c.cost):
             continue
-        if c.cost < best_cost:
+        if c.cost < best_cost - TIE_RTOL * max(1.0, abs(best_cost) if np.isfinite(best_cost) else 0.0):
             best, best_cost = i, float(c.cost)
     return best
 

@@ -86,6 +86,10 @@ def test_argmin_cost_keeps_the_cheapest_converged_candidate():
     assert argmin_cost([None, _cand(2.0, True)]) == 1
     assert argmin_cost([_cand(1.0, False), None]) is None
     assert argmin_cost([_cand(float("nan"), True), _cand(9.0, True)]) == 1
+    # the same optimum reached from both guesses differs by rounding: a tie, won by the policy guess
+    assert argmin_cost([_cand(31.25, True), _cand(31.25 - 1e-13, True)]) == 0
+    assert argmin_cost([_cand(31.25 - 1e-13, True), _cand(31.25, True)]) == 0
+    assert argmin_cost([_cand(31.25, True), _cand(31.2, True)]) == 1
 
 
 def test_refine_instance_never_keeps_a_non_converged_solve(trained):
