@@ -75,13 +75,15 @@ def main() -> None:
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--thread-seeds", default=None, help="seeds also run at the other thread counts (default all)")
     ap.add_argument("--variants", default="sdp,alpha0,flipped,dp")
+    ap.add_argument("--other-seeds", default=None, help="seeds of the variants other than sdp (default: --seeds)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("/tmp/sdp-regression-threshold"))
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",")]
     threads = [int(t) for t in a.threads.split(",")]
     tseeds = seeds if a.thread_seeds is None else [int(s) for s in a.thread_seeds.split(",")]
-    jobs = [(v, s, t) for v in a.variants.split(",") for s in seeds
+    oseeds = seeds if a.other_seeds is None else [int(s) for s in a.other_seeds.split(",")]
+    jobs = [(v, s, t) for s in seeds for v in a.variants.split(",") if v == "sdp" or s in oseeds
             for t in (threads if v == "sdp" and s in tseeds else threads[:1])]
     a.out.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(a.jobs) as pool:

@@ -184,41 +184,6 @@ class SerialExecutor(Executor):
 
 
 # -------------------------------------------------------------- local pool
-def _worker_init(parent: int | None = None) -> None:
-    # one BLAS/OpenMP thread per worker: the parallelism is across processes
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _die_with_parent(parent)
-
-
-def _die_with_parent(parent: int | None) -> None:
-    """Make this worker exit when the process that started it dies (``kill -9`` included).
-
-    Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``; elsewhere a daemon thread polls the parent pid.
-    """
-    import signal
-    import threading
-
-    if parent is None:
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0:   # PR_SET_PDEATHSIG
-            if os.getppid() != parent:                          # died before prctl took effect
-                os._exit(1)
-            return
-    except (OSError, AttributeError):
-        pass
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
 class PoolExecutor(Executor):
     """A ``ProcessPoolExecutor`` of ``workers`` processes, created at the first submit."""
 
@@ -245,7 +210,9 @@ class PoolExecutor(Executor):
                                "crash in the solver?); finished results are kept, re-run to resume")
         if self._pool is None:
             ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init,
+            from sdp_cli.workers import worker_init
+
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=worker_init,
                                              initargs=(os.getpid(),))
             self._broken = False
         return self._pool
