@@ -164,7 +164,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     arrays = {**traj, **ev, "xi": xis, "rollout_time": np.asarray(wall)}
     ck_cfg = policy.config.to_dict() if hasattr(policy.config, "to_dict") else {}
     path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
-                    task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
+                    device=str(policy.device), task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
                     policy_epoch=policy.checkpoint_epoch, policy_dataset=policy.dataset_info)
     summary = {"method": policy.method, "n": config.n, "mean_cost": float(np.mean(ev["cost"])),
