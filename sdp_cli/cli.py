@@ -144,6 +144,7 @@ def refine_cmd(
     out: Annotated[Path, typer.Option(help="Dataset artifact to write (.npz), same format as `sdp collect`.")],
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
+    single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Also report the second TO baseline, single shooting solved by IPOPT (the paper's DDP family), from the policy's and the naive controls (not kept in the dataset).")] = False,
     workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
@@ -153,8 +154,8 @@ def refine_cmd(
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
-    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, workers=workers, executor=executor,
-                     scheduler=scheduler)
+    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, single_shooting=single_shooting,
+                     workers=workers, executor=executor, scheduler=scheduler)
     typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins}; "
                f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
                f"mean solve {s.mean_pol_time:.3f} s vs {s.mean_base_time:.3f} s")
@@ -189,7 +190,8 @@ def evaluate_cmd(
                                             for k, v in row.items() if k in (
                                                 "method", "policy_cost_mean", "refined_cost_mean",
                                                 "refined_converged_rate", "argmin_cost_mean",
-                                                "to_alone_cost_mean", "success_rate")))
+                                                "to_alone_cost_mean", "ss_to_alone_cost_mean",
+                                                "ss_refined_cost_mean", "success_rate")))
 
 
 @app.command("plot-dataset")

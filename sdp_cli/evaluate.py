@@ -5,7 +5,9 @@ success rate (reached the goal without diverging), divergences, max constraint v
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
-others), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time. Written as CSV so that ``sdp report`` can aggregate across seeds.
+others), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time; with
+``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*`` from the
+naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that ``sdp report`` can aggregate across seeds.
 """
 
 from __future__ import annotations
@@ -83,6 +85,14 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             "to_alone_iterations_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_iterations"], np.nan)),
             "to_alone_solve_time_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_time"], np.nan)),
         })
+        if "inst_ss_base_converged" in d:   # the single-shooting baseline (sdp refine --single-shooting)
+            for g, name in (("base", "ss_to_alone"), ("pol", "ss_refined")):
+                ok, tried = d[f"inst_ss_{g}_converged"].astype(bool), d[f"inst_ss_{g}_iterations"] >= 0
+                row.update({
+                    f"{name}_cost_mean": _mean(np.where(ok, d[f"inst_ss_{g}_cost"], np.nan)),
+                    f"{name}_converged_rate": float(np.mean(ok)) if tried.any() else float("nan"),
+                    f"{name}_iterations_mean": _mean(np.where(tried, d[f"inst_ss_{g}_iterations"], np.nan)),
+                    f"{name}_solve_time_mean": _mean(np.where(tried, d[f"inst_ss_{g}_time"], np.nan))})
     row.update(extra or {})
     return row
 

@@ -169,8 +169,8 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                                                          k_rollout=cfg.k_rollout), device=cfg.device)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
         if not rf.exists():
-            refine(ro, rf, max_iter=cfg.max_iter, workers=cfg.workers, executor=cfg.executor or "local",
-                   scheduler=cfg.scheduler)
+            refine(ro, rf, max_iter=cfg.max_iter, single_shooting=True, workers=cfg.workers,
+                   executor=cfg.executor or "local", scheduler=cfg.scheduler)
         rows.append(evaluation_row(ro, rf, extra))
     df = pd.DataFrame(rows)
     write_evaluation(rows, eval_dir / "eval.csv")

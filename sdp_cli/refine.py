@@ -57,9 +57,28 @@ def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
     return bool(np.isfinite(cost) and cost <= DIVERGENCE_COST)
 
 
+SS_KEYS = tuple(f"ss_{g}_{k}" for g in ("pol", "base") for k in ("cost", "iterations", "converged", "time"))
+
+
+def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_iter: int) -> dict:
+    """The second TO baseline (:mod:`sdp_cli.trajopt.single_shooting`) from the policy's and the naive controls."""
+    from sdp_cli.trajopt.single_shooting import get_single_shooting
+
+    ss = get_single_shooting(task, max_iter)
+    rec = {}
+    for g, guess in (("pol", U_pol if usable else None), ("base", task.naive_guess(xi)[1] if baseline else None)):
+        r = ss.solve(xi, guess) if guess is not None else None
+        rec.update({f"ss_{g}_cost": r.cost if r else np.nan, f"ss_{g}_iterations": r.iterations if r else -1,
+                    f"ss_{g}_converged": bool(r.converged) if r else False, f"ss_{g}_time": r.solve_time if r else 0.0})
+    return rec
+
+
 def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
-                    U_pol: np.ndarray, max_iter: int, baseline: bool) -> dict:
-    """Solve one instance from the policy guess (and the naive guess); picklable dict out."""
+                    U_pol: np.ndarray, max_iter: int, baseline: bool, single_shooting: bool = False) -> dict:
+    """Solve one instance from the policy guess (and the naive guess); picklable dict out.
+
+    ``single_shooting``: also solve both with the single-shooting baseline (``ss_*`` records; reported,
+    never kept in the dataset)."""
     from sdp_cli.trajopt import get_solver
 
     task = get_task(task_name, **task_options)
@@ -68,7 +87,8 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
     # a diverged rollout (non-finite, or cost above the rollout's divergence threshold) is no
     # guess: solving from states of 1e7 wastes the iteration budget at best, and fatrop's line
     # search can loop forever from there
-    pol = solver.solve(xi, X_pol, U_pol) if usable_guess(task, xi, X_pol, U_pol) else None
+    usable = usable_guess(task, xi, X_pol, U_pol)
+    pol = solver.solve(xi, X_pol, U_pol) if usable else None
     base = solver.solve(xi, *task.naive_guess(xi)) if baseline else None
     win = argmin_cost([pol, base])
     rec = {
@@ -87,6 +107,8 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
     if res is not None:
         rec.update({k: np.asarray(getattr(res, k)) for k in RESULT_KEYS})
     rec["converged"] = np.asarray(win is not None)
+    if single_shooting:
+        rec.update(_single_shooting_record(task, xi, U_pol, usable, baseline, max_iter))
     return rec
 
 
@@ -105,11 +127,13 @@ def failed_record(xi: np.ndarray, status: str) -> dict:
     """The record of an instance whose job raised: nothing converged, nothing kept."""
     return {"xi": xi, "pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
             "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
-            "winner": WIN_NONE, "converged": np.asarray(False), "status": status, "pol_X": None, "base_X": None}
+            "winner": WIN_NONE, "converged": np.asarray(False), "status": status, "pol_X": None, "base_X": None,
+            **{k: (np.nan if k.endswith("cost") else -1 if k.endswith("iterations") else False if
+                   k.endswith("converged") else 0.0) for k in SS_KEYS}}
 
 
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
-           baseline: bool = True, workers: int | None = None,
+           baseline: bool = True, single_shooting: bool = False, workers: int | None = None,
            progress: Callable[[int], None] | None = None, executor: "str | Executor" = "local",
            scheduler: str | None = None) -> tuple[Path, RefineStats]:
     """Refine every rollout of an artifact; write a dataset artifact to ``out``.
@@ -143,8 +167,8 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     try:
         described = ex.describe()
         ex.warm(warm_solver, task_name, task_options, max_iter)  # once per worker process
-        argsets = [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i], max_iter, baseline)
-                   for i in range(n)]
+        argsets = [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i], max_iter, baseline,
+                    single_shooting) for i in range(n)]
         for i, res in ex.imap_unordered(refine_instance, argsets):
             recs[i] = res.value if res.ok else failed_record(arrays["xi"][i], error_status(res.error))
             if progress:
@@ -156,6 +180,8 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     out_arrays = {f"inst_{k}": np.array([r[k] for r in recs]) for k in
                   ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost",
                    "base_iterations", "base_converged", "base_time", "winner")}
+    if single_shooting:
+        out_arrays.update({f"inst_{k}": np.array([r[k] for r in recs]) for k in SS_KEYS})
     out_arrays["inst_xi"] = arrays["xi"]
     nan_X = np.full(arrays["X"].shape[1:], np.nan)
     for k in ("pol_X", "base_X"):  # (n, T+1, nx): the solve from the policy guess / naive guess
@@ -176,7 +202,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     dims = task.dims()
     path = save_npz(out, out_arrays, kind="dataset",
                     config={"rollouts": str(rollouts), "rollouts_sha256": file_sha256(rollouts),
-                            "max_iter": max_iter, "baseline": baseline,
+                            "max_iter": max_iter, "baseline": baseline, "single_shooting": single_shooting,
                             "workers": described.get("workers"),
                             "executor": described, "rollout_config": meta.get("config", {})},
                     task=task_name, task_params=task.params(), task_options=task_options, dims=dims,

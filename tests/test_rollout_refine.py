@@ -163,3 +163,29 @@ def test_a_diverged_finite_rollout_is_no_warm_start():
     X_nan = X.copy()
     X_nan[50:] = np.nan
     assert not usable_guess(task, g["xi"], X_nan, U)
+
+
+def test_single_shooting_baseline_is_reported_from_both_guesses(trained, tmp_path):
+    """`sdp refine --single-shooting`: the second TO-alone baseline (controls only, states by rollout,
+    IPOPT) from the naive and the policy controls; its solutions are feasible optima of the task and are
+    reported, never kept in the dataset."""
+    from sdp_cli.tasks import get_task
+    from sdp_cli.trajopt.single_shooting import get_single_shooting
+
+    task = get_task("pendulum")
+    xi = evaluation_xis(task, 1, 3)[0]
+    res = get_single_shooting(task).solve(xi, task.naive_guess(xi)[1])
+    assert res.converged and res.iterations > 0 and res.max_violation <= 1e-6
+    assert res.cost == pytest.approx(task.cost(res.X, res.U, xi), rel=1e-9)      # the rollout of its controls
+    np.testing.assert_allclose(res.X, task.simulate(task.initial_state(xi), res.U), atol=1e-9)
+    ro, rf, ev = tmp_path / "r.npz", tmp_path / "f.npz", tmp_path / "e.csv"
+    assert runner.invoke(app, ["rollout", "--policy", str(trained["sdp"]), "--n", "2", "--out", str(ro)]).exit_code == 0
+    r = runner.invoke(app, ["refine", "--rollouts", str(ro), "--out", str(rf), "--workers", "1", "--single-shooting"])
+    assert r.exit_code == 0, r.output
+    d, meta = load_npz(rf, kind="dataset")
+    assert meta["config"]["single_shooting"] and d["inst_ss_base_converged"].all()
+    assert runner.invoke(app, ["evaluate", "--rollouts", str(ro), "--refined", str(rf), "--out", str(ev)]).exit_code == 0
+    row = pd.read_csv(ev).iloc[0]
+    assert row["ss_to_alone_converged_rate"] == 1.0
+    assert row["ss_to_alone_cost_mean"] == pytest.approx(float(np.mean(d["inst_ss_base_cost"])))
+    assert "ss_refined_cost_mean" in row
