@@ -291,6 +291,7 @@ def loop_cmd(
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
     sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,
+    single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
     threads: ThreadsOpt = 1,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
@@ -306,7 +307,7 @@ def loop_cmd(
                      eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
-                     train_options=opts)
+                     train_options=opts, single_shooting=single_shooting)
     summary = run_loop(cfg, out, log=typer.echo)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

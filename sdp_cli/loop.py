@@ -55,6 +55,7 @@ class LoopConfig:
     executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
     scheduler: str | None = None   # address of a running Dask scheduler
     train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
+    single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
 
     def __post_init__(self):
         if self.n_algo <= 0:
@@ -103,7 +104,8 @@ class LoopConfig:
 
 
 # settings that may change when a loop is resumed (where it runs, how much is evaluated)
-RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler")
+RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler",
+                    "single_shooting")
 
 
 def _config_json(cfg: LoopConfig) -> str:
@@ -169,7 +171,7 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                                                          k_rollout=cfg.k_rollout), device=cfg.device)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
         if not rf.exists():
-            refine(ro, rf, max_iter=cfg.max_iter, single_shooting=True, workers=cfg.workers,
+            refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
                    executor=cfg.executor or "local", scheduler=cfg.scheduler)
         rows.append(evaluation_row(ro, rf, extra))
     df = pd.DataFrame(rows)

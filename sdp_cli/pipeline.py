@@ -38,7 +38,7 @@ from sdp_cli.errors import SdpError
 PIPELINES_DIR = Path("pipelines")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
                   "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50, "test_seed": 0,
-                  "max_iter": 1000, "train": {}}
+                  "max_iter": 1000, "single_shooting": False, "train": {}}
 _TRAIN_FLAGS = {"batch_size": "--batch-size", "alpha_sobolev": "--alpha-sobolev", "lr": "--lr",
                 "n_proj": "--n-proj", "sobolev_mode": "--sobolev-mode", "diffusion_steps": "--diffusion-steps",
                 "action": "--action", "sobolev_cap": "--sobolev-cap"}
@@ -118,7 +118,7 @@ def expand(name: str, spec: dict) -> dict:
                         "policy": f"{d}/policy", "ckpt": f"{d}/policy/{ck}", "n_test": g["n_test"],
                         "test_seed": g["test_seed"], "t_a": "" if t_a is None else f"--t-a {t_a}",
                         "k_rollout": k_opt, "max_iter": g["max_iter"], "dir": f"{d}/eval/e{epochs}-ta{ta}",
-                        "tags": tags}
+                        "refine_opts": "--single-shooting" if g["single_shooting"] else "", "tags": tags}
     return out  # empty dictionaries are fine: DVC's foreach then generates no stage
 
 

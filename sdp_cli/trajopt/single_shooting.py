@@ -59,8 +59,9 @@ class SingleShootingSolver:
         f = ca.sum2(task.f_running_cost.map(T)(X_prev, U, xis)) + task.f_terminal_cost(X[:, T - 1], xi)
         g = ca.vec(task.f_state_constraints.map(T)(X, xis)) if task.n_h else ca.MX(0, 1)
         self._ng = int(g.shape[0])
-        opts = {"print_time": False, "error_on_fail": False,
+        opts = {"print_time": False, "error_on_fail": False, "show_eval_warnings": False,
                 "ipopt": {"print_level": 0, "sb": "yes", "max_iter": self.max_iter, "tol": self.tol,
+                          "hessian_approximation": "limited-memory",
                           "acceptable_iter": 0, "constr_viol_tol": 0.1 * self.viol_tol}}
         self._nlpsol = ca.nlpsol(f"sdp_ss_{task.name}_T{T}".replace("-", "_"), "ipopt",
                                  {"x": ca.vec(U), "p": p, "f": f, "g": g}, opts)
