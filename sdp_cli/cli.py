@@ -18,8 +18,19 @@ app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_
                   pretty_exceptions_enable=False, add_completion=False)
 
 
+def _version(value: bool) -> None:
+    if value:
+        import sdp_cli
+        from sdp_cli.data.artifacts import git_revision
+
+        typer.echo(f"sdp {sdp_cli.__version__} (git {git_revision()})")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=_version, is_eager=True,
+                                                          help="Print the package version and git revision.")] = None,
+          ) -> None:
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
 
 
@@ -317,7 +328,8 @@ def loop_cmd(
 @app.command("pipeline")
 @clean_errors
 def pipeline_cmd(
-    experiment: Annotated[str, typer.Argument(help="Experiment name: a file pipelines/<name>.yaml (small, fig1, fig2, fig3, fig4).")],
+    experiment: Annotated[str, typer.Argument(help="Experiment name: a file pipelines/<name>.yaml (" + ", ".join(
+        sorted(p.stem for p in Path("pipelines").glob("*.yaml"))) + " here).")],
     params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
 ) -> None:
     """Select the experiment that `dvc repro` runs (expands pipelines/<name>.yaml into params.yaml)."""

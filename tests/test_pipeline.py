@@ -42,3 +42,18 @@ def test_fig2_stage_counts_and_selection(tmp_path):
     assert written["experiment"] == "fig2" and counts["evaluate"] == 38
     with pytest.raises(SdpError, match="unknown experiment 'fig9'; known: .*fig2"):
         select_experiment("fig9", params_path=params, root=ROOT)
+
+
+def test_version_and_pipeline_help_list_what_exists():
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli import app
+    from sdp_cli.data.artifacts import git_revision
+
+    r = CliRunner().invoke(app, ["--version"])
+    assert r.exit_code == 0 and r.output.startswith("sdp 0.") and git_revision().split("+")[0][:7] in r.output
+    r = CliRunner().invoke(app, ["pipeline", "--help"], terminal_width=200)
+    from pathlib import Path
+
+    names = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "pipelines").glob("*.yaml"))
+    assert r.exit_code == 0 and f"({', '.join(names)} here)" in " ".join(r.output.split())
