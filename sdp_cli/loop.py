@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, load_npz, save_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
 
 
@@ -186,12 +186,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     from sdp_cli.train import train
 
     out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise SdpError(f"cannot create the loop folder {out}: {e.strerror or e}") from None
-    if not os.access(out, os.W_OK):
-        raise SdpError(f"cannot write into the loop folder {out}: permission denied")
+    ensure_dir(out, "loop folder")
     check_resume(cfg, out)
     atomic_write_bytes(out / "loop_config.json", lambda f: f.write(_config_json(cfg).encode()))
     tables, prev_policy, datasets = [], None, []

@@ -29,7 +29,7 @@ import torch
 
 from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
-from sdp_cli.data.artifacts import atomic_write_bytes
+from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir
 from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
                                        save_checkpoint)
 from sdp_cli.policy.config import TrainConfig
@@ -186,12 +186,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         from sdp_cli.policy.diffusion import make_scheduler
         scheduler = make_scheduler(cfg)
     loss_fn = make_loss(cfg, scheduler)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise SdpError(f"cannot create the run folder {out}: {e.strerror or e}") from None
-    if not os.access(out, os.W_OK):
-        raise SdpError(f"cannot write into the run folder {out}: permission denied")
+    ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
             "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
             "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),

@@ -118,6 +118,18 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def ensure_dir(path: str | os.PathLike, what: str) -> Path:
+    """Create the output folder ``path`` (``what``: e.g. "run folder") or raise one clear ``SdpError``."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SdpError(f"cannot create the {what} {path}: {e.strerror or e}") from None
+    if not os.access(path, os.W_OK):
+        raise SdpError(f"cannot write into the {what} {path}: permission denied")
+    return path
+
+
 def check_writable(*paths: str | os.PathLike | None) -> None:
     """``SdpError`` unless every output path's folder can be created and written (before any work)."""
     for p in paths:
