@@ -14,8 +14,9 @@ seed and torch thread count, for
 
 and prints, per variant, the SDP policy's success rate (rollouts whose end effector ends within the
 task's goal tolerance, not diverged), median and mean cost at the last iteration, then, for each
-broken variant, a threshold on the mean cost (the statistic the regression test checks) halfway
-between the worst working run and the best broken one, if the two are separated. Whoever changes a task or the training re-runs this script and
+broken variant, a threshold on the mean cost (the regression test's first check) halfway between
+the worst working run and the best broken one, if the two are separated, and a threshold on SDP's
+final training Sobolev error (its second check, which catches alpha_Sobolev = 0). Whoever changes a task or the training re-runs this script and
 updates the test's constants and docstring with its output. Runs are independent processes with
 one torch thread each unless --threads says otherwise; ``--jobs`` run at the same time.
 ``sdp loop`` collects iteration 1 with seed 1000 * seed + 1 where the DVC pipeline uses seed + 1:
@@ -51,7 +52,9 @@ def run_one(variant: str, seed: int, threads: int, out: Path) -> dict:
             raise RuntimeError(f"{variant} seed {seed}: {r.stderr[-2000:]}")
     df = pd.read_csv(summary)
     last = df[df.iteration == df.iteration.max()].iloc[0]
+    sob = pd.read_csv(run / f"it{int(last.iteration)}" / "policy" / "metrics.csv").sobolev.tail(50).mean()
     return {"variant": variant, "seed": seed, "threads": threads, "success_rate": float(last.success_rate),
+            "sobolev_final": float(sob),
             "policy_cost_median": float(last.policy_cost_median), "policy_cost_mean": float(last.policy_cost_mean)}
 
 
@@ -102,6 +105,13 @@ def main() -> None:
             hi, lo = float(ok.max()), float(broken.min())
             verdict = f"threshold {(hi + lo) / 2:.1f}" if lo > hi else "NOT separated: the test cannot catch it"
             print(f"policy mean cost, worst working SDP run {hi:.2f}; best {v} run {lo:.2f}: {verdict}")
+    ok = df[df.variant == "sdp"].sobolev_final
+    broken = df[df.variant == "alpha0"].sobolev_final
+    if len(ok) and len(broken):
+        hi, lo = float(ok.max()), float(broken.min())
+        verdict = f"threshold {np.sqrt(hi * lo):.3g} (geometric midpoint)" if lo > hi else "NOT separated"
+        print(f"final Sobolev error (last 50 steps), worst working SDP run {hi:.3g}; best alpha0 run {lo:.3g}: "
+              f"{verdict}")
 
 if __name__ == "__main__":
     main()
