@@ -5,9 +5,10 @@ success rate (reached the goal without diverging), divergences, max constraint v
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
-others), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time; with
-``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*`` from the
-naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that ``sdp report`` can aggregate across seeds.
+others), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time;
+with ``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*``
+from the naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that
+``sdp report`` can aggregate across seeds.
 """
 
 from __future__ import annotations

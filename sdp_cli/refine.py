@@ -57,7 +57,9 @@ def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
     return bool(np.isfinite(cost) and cost <= DIVERGENCE_COST)
 
 
-SS_KEYS = tuple(f"ss_{g}_{k}" for g in ("pol", "base") for k in ("cost", "iterations", "converged", "time"))
+#: per-instance single-shooting fields and their values when that solve was not run
+SS_MISSING = {"cost": np.nan, "iterations": -1, "converged": False, "time": 0.0}
+SS_KEYS = tuple(f"ss_{g}_{k}" for g in ("pol", "base") for k in SS_MISSING)
 
 
 def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_iter: int) -> dict:
@@ -67,9 +69,12 @@ def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_i
     ss = get_single_shooting(task, max_iter)
     rec = {}
     for g, guess in (("pol", U_pol if usable else None), ("base", task.naive_guess(xi)[1] if baseline else None)):
-        r = ss.solve(xi, guess) if guess is not None else None
-        rec.update({f"ss_{g}_cost": r.cost if r else np.nan, f"ss_{g}_iterations": r.iterations if r else -1,
-                    f"ss_{g}_converged": bool(r.converged) if r else False, f"ss_{g}_time": r.solve_time if r else 0.0})
+        if guess is None:
+            rec.update({f"ss_{g}_{k}": v for k, v in SS_MISSING.items()})
+            continue
+        r = ss.solve(xi, guess)
+        rec.update({f"ss_{g}_cost": r.cost, f"ss_{g}_iterations": r.iterations,
+                    f"ss_{g}_converged": bool(r.converged), f"ss_{g}_time": r.solve_time})
     return rec
 
 
@@ -128,8 +133,7 @@ def failed_record(xi: np.ndarray, status: str) -> dict:
     return {"xi": xi, "pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
             "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
             "winner": WIN_NONE, "converged": np.asarray(False), "status": status, "pol_X": None, "base_X": None,
-            **{k: (np.nan if k.endswith("cost") else -1 if k.endswith("iterations") else False if
-                   k.endswith("converged") else 0.0) for k in SS_KEYS}}
+            **{f"ss_{g}_{k}": v for g in ("pol", "base") for k, v in SS_MISSING.items()}}
 
 
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,

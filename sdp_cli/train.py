@@ -60,8 +60,9 @@ def make_loss(cfg: TrainConfig, scheduler=None) -> Callable:
     return lambda net, b, g: mlp_loss(net, b, cfg, g, sobolev=cfg.sobolev)
 
 
-def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu"):
-    """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer."""
+def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen: bool = False):
+    """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer;
+    ``widen``: the given normalizer's ranges are extended to cover this dataset (``--init``)."""
     with_jac = cfg.sobolev
     if cfg.is_diffusion:
         action = cfg.action or task.action
@@ -73,7 +74,9 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu"):
         ds = PairDataset(task, arrays, with_jacobians=with_jac)
         dims = {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
     net = build_net(cfg, dims)
-    norm = normalizer if normalizer is not None else fit_normalizer(task, arrays, action)
+    norm = fit_normalizer(task, arrays, action) if normalizer is None or widen else normalizer
+    if normalizer is not None and widen:
+        norm = normalizer.union(norm)
     net.normalizer.load_state_dict(norm.state_dict())
     tensors = ds.tensors(net.normalizer, device)
     if cfg.sobolev and cfg.sobolev_cap is not None:
@@ -119,8 +122,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         if stored.method != cfg.method:
             raise SdpError(f"cannot resume: {ck_path} is a {stored.method!r} run, not {cfg.method!r}")
         skip = {"checkpoint_every_s"} | (set(ARCH_FIELDS) if prev.get("init") else set())  # --init's win
-        changed = [f"{k}={getattr(cfg, k)!r} (run: {getattr(stored, k)!r})" for k in stored.to_dict()
-                   if k not in skip and stored.to_dict()[k] != cfg.to_dict()[k]]
+        old_d, new_d = stored.to_dict(), cfg.to_dict()
+        changed = [f"{k}={new_d[k]!r} (run: {old_d[k]!r})" for k in old_d if k not in skip and old_d[k] != new_d[k]]
         if changed:
             raise SdpError(f"cannot resume {ck_path} with other settings: {', '.join(changed)}; resume with the "
                            f"run's options or train into another --out")
@@ -147,9 +150,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if init_ck is not None or prev is not None:
         from sdp_cli.policy.checkpoint import net_from_checkpoint
         norm = net_from_checkpoint(prev or init_ck).normalizer
-        if prev is None:   # --init: cover the previous ranges and the new dataset's
-            norm = norm.union(fit_normalizer(task, arrays, cfg.action or task.action if cfg.is_diffusion else "u"))
-    net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev)
+    # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
+    net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
+    fitted_norm = {k: v.clone() for k, v in net.normalizer.state_dict().items()}
     n_samples = next(iter(tensors.values())).shape[0]
     steps_per_epoch = math.ceil(E / cfg.batch_size)
     total = cfg.epochs * steps_per_epoch
@@ -164,7 +167,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                    power=cfg.ema_power)
     if init_ck is not None:
         net.load_state_dict(init_ck["model"])
-        net.normalizer.load_state_dict(norm.state_dict())   # the widened one, not the checkpoint's
+        net.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's
     step, wall0, rows = 0, 0.0, []
     if prev is not None:
         net.load_state_dict(prev["model"])

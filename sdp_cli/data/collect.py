@@ -24,7 +24,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from sdp_cli.data.artifacts import atomic_write_bytes, load_npz, save_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
 from sdp_cli.tasks import Task, get_task
@@ -163,12 +163,7 @@ class PartialStore:
                 raise SdpError(f"partial results in {self.dir} come from a different configuration "
                                f"({old}); delete the folder or choose another --out")
         else:   # created with the first result, so that a run rejected before any solve leaves nothing
-            try:
-                out.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise SdpError(f"cannot write to {out.parent}: {e.strerror or e}") from None
-            if not os.access(out.parent, os.W_OK):
-                raise SdpError(f"cannot write to {out.parent}: permission denied")
+            check_writable(out)
 
     def _create(self) -> None:
         try:
