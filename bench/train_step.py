@@ -90,11 +90,15 @@ def main():
     ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--data", default=None)
+    ap.add_argument("--action-dim", type=int, default=1, help="A of the synthetic batch")
+    ap.add_argument("--ndx", type=int, default=2, help="state tangent size of the synthetic batch")
+    ap.add_argument("--n-obs", type=int, default=3, help="observation size (obs(x), u_prev) of the synthetic batch")
+    ap.add_argument("--n-xi", type=int, default=2, help="xi size of the synthetic batch")
     ap.add_argument("--modes", default="dp,sdp-vjp,sdp-jvp-func,sdp-jvp,sdp-jvp-half")
     a = ap.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
-    batch, dims = (dataset_batch(a.data, a.batch, a.horizon) if a.data else synthetic_batch(a.batch, a.horizon))
+    batch, dims = (dataset_batch(a.data, a.batch, a.horizon) if a.data else synthetic_batch(a.batch, a.horizon, a.action_dim, a.ndx, a.n_obs, a.n_xi))
     modes = a.modes.split(",")
     steps = {}
     for m in modes:

@@ -234,7 +234,9 @@ def train_cmd(
     horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h (diffusion methods).")] = 32,
     diffusion_steps: Annotated[int, typer.Option("--diffusion-steps", help="DDPM steps K.")] = 5,
     down_dims: Annotated[str, typer.Option("--down-dims", help="U-Net hidden dims, comma-separated.")] = "24,24,32,32",
-    alpha_sobolev: Annotated[float, typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = 1.0,
+    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's, the paper's values: 1, quadrotor 1e-3).")] = None,
+    sobolev_balance: Annotated[bool, typer.Option("--sobolev-balance/--no-sobolev-balance", help="Scale the Sobolev term so that alpha 1 weighs it equally with the regression term on the dataset (docs/training.md).")] = True,
+    sobolev_path: Annotated[str, typer.Option("--sobolev-path", help="sdp: cond = differentiate through (o_hist, a_hist) only (default); total = also through the noisy chunk tau_k.")] = "cond",
     n_proj: Annotated[int, typer.Option("--n-proj", help="Random projections per sample.")] = 1,
     sobolev_mode: Annotated[str, typer.Option("--sobolev-mode", help="jvp: project on the state side (forward mode, default); vjp: eq. (6), project on the output side.")] = "jvp",
     sobolev_fraction: Annotated[float, typer.Option("--sobolev-fraction", help="jvp mode: share of each batch that gets the Sobolev term (1 = all; 0.5 costs ~1.5x a DP step instead of ~1.9x).")] = 1.0,
@@ -262,6 +264,7 @@ def train_cmd(
     cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
                       K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
                       sobolev_fraction=sobolev_fraction, sobolev_cap=sobolev_cap, action=action, save_at=save,
+                      sobolev_balance=sobolev_balance, sobolev_path=sobolev_path,
                       down_dims=dims)
     path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
     typer.echo(f"wrote {path}")
@@ -299,9 +302,11 @@ def loop_cmd(
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "cpu",
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
-    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term.")] = None,
+    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's).")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
     sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,
+    sobolev_path: Annotated[Optional[str], typer.Option("--sobolev-path", help="sdp: cond (default) or total (see `sdp train --help`).")] = None,
+    sobolev_balance: Annotated[Optional[bool], typer.Option("--sobolev-balance/--no-sobolev-balance", help="Balance the Sobolev term (default on; see `sdp train --help`).", show_default=False)] = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
     threads: ThreadsOpt = 1,
 ) -> None:
@@ -311,7 +316,8 @@ def loop_cmd(
 
     set_threads(threads)
     opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size),
-                              ("sobolev_cap", sobolev_cap)) if v is not None}
+                              ("sobolev_cap", sobolev_cap), ("sobolev_path", sobolev_path),
+                              ("sobolev_balance", sobolev_balance)) if v is not None}
     cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),
                      epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
                      eval_t_a=_int_list(eval_t_a, "--eval-t-a"),

@@ -41,7 +41,8 @@ GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1,
                   "max_iter": 1000, "single_shooting": False, "train": {}}
 _TRAIN_FLAGS = {"batch_size": "--batch-size", "alpha_sobolev": "--alpha-sobolev", "lr": "--lr",
                 "n_proj": "--n-proj", "sobolev_mode": "--sobolev-mode", "diffusion_steps": "--diffusion-steps",
-                "action": "--action", "sobolev_cap": "--sobolev-cap"}
+                "action": "--action", "sobolev_cap": "--sobolev-cap", "sobolev_path": "--sobolev-path",
+                "sobolev_balance": "--sobolev-balance"}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:
@@ -63,7 +64,10 @@ def _train_opts(group: dict) -> str:
     for k, v in (group.get("train") or {}).items():
         if k not in _TRAIN_FLAGS:
             raise SdpError(f"unknown train option {k!r} in experiment; known: {', '.join(_TRAIN_FLAGS)}")
-        opts.append(f"{_TRAIN_FLAGS[k]} {v}")
+        if isinstance(v, bool):   # switches: --name / --no-name
+            opts.append(_TRAIN_FLAGS[k] if v else _TRAIN_FLAGS[k].replace("--", "--no-", 1))
+        else:
+            opts.append(f"{_TRAIN_FLAGS[k]} {v}")
     return " ".join(opts)
 
 

@@ -1,8 +1,8 @@
 """``sdp train``: fit SDP, DP, PDDP or PDDP+S on a dataset artifact (Algorithm 1, lines 11-23).
 
 - Epochs follow the paper: ``E = |D| (T - T_h) / T_h`` chunks for diffusion policies,
-  ``|D| T`` pairs for the MLPs; one epoch is ``ceil(E / B)`` steps, each on a batch of
-  ``B`` samples drawn uniformly with replacement.
+  ``|D| T`` pairs for the MLPs; one epoch draws ``E`` samples without replacement and
+  trains ``ceil(E / B)`` steps on them, the last batch smaller (:mod:`sdp_cli.data.sampling`).
 - AdamW, cosine learning rate with linear warm-up, EMA of the weights (diffusers'
   ``EMAModel`` with warm-up, power 0.75, as diffusion policy), gradient-norm clipping.
 - Run folder ``--out``: ``checkpoint.pt`` (latest; rewritten atomically every
@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -30,6 +30,7 @@ import torch
 from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir
+from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
                                        save_checkpoint)
 from sdp_cli.policy.config import TrainConfig
@@ -51,13 +52,25 @@ def resolve_device(device: str) -> torch.device:
     return dev
 
 
-def make_loss(cfg: TrainConfig, scheduler=None) -> Callable:
+def make_loss(cfg: TrainConfig, scheduler=None, sobolev_scale: float = 1.0) -> Callable:
     """``loss_fn(net, batch, generator) -> (loss, parts)`` for ``cfg.method``."""
     if cfg.is_diffusion:
         from sdp_cli.policy.diffusion import diffusion_loss
-        return lambda net, b, g: diffusion_loss(net, scheduler, b, cfg, g, sobolev=cfg.sobolev)
+        return lambda net, b, g: diffusion_loss(net, scheduler, b, cfg, g, sobolev=cfg.sobolev,
+                                                sobolev_scale=sobolev_scale)
     from sdp_cli.policy.mlp import mlp_loss
-    return lambda net, b, g: mlp_loss(net, b, cfg, g, sobolev=cfg.sobolev)
+    return lambda net, b, g: mlp_loss(net, b, cfg, g, sobolev=cfg.sobolev, sobolev_scale=sobolev_scale)
+
+
+def sobolev_scale_of(cfg: TrainConfig, tensors: dict) -> float:
+    """The Sobolev term's factor on this dataset: :func:`balance_scale` (``cfg.sobolev_balance``) or 1."""
+    if not (cfg.sobolev and cfg.sobolev_balance):
+        return 1.0
+    from sdp_cli.losses.sobolev import balance_scale
+
+    if cfg.is_diffusion:
+        return balance_scale(tensors["tau0"][:, cfg.T_o:], tensors["jac"][:, cfg.T_o:])
+    return balance_scale(tensors["u"], tensors["jac"])
 
 
 def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen: bool = False):
@@ -123,7 +136,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             raise SdpError(f"cannot resume: {ck_path} is a {stored.method!r} run, not {cfg.method!r}")
         skip = {"checkpoint_every_s"} | (set(ARCH_FIELDS) if prev.get("init") else set())  # --init's win
         old_d, new_d = stored.to_dict(), cfg.to_dict()
-        changed = [f"{k}={new_d[k]!r} (run: {old_d[k]!r})" for k in old_d if k not in skip and old_d[k] != new_d[k]]
+        changed = [f"{k}={new_d[k]!r} (run: {old_d[k]!r})" for k in old_d if k not in skip and old_d[k] != new_d[k]
+                   and not (k == "alpha_sobolev" and new_d[k] is None)]   # None: the task's default
         if changed:
             raise SdpError(f"cannot resume {ck_path} with other settings: {', '.join(changed)}; resume with the "
                            f"run's options or train into another --out")
@@ -145,6 +159,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if prev is not None and prev["dataset"]["sha256"] != fingerprint:
         raise SdpError(f"cannot resume: {data} is not the dataset {ck_path} was trained on")
 
+    if cfg.alpha_sobolev is None:
+        cfg = replace(cfg, alpha_sobolev=float(task.alpha_sobolev))
     torch.manual_seed(cfg.seed)
     norm = None
     if init_ck is not None or prev is not None:
@@ -153,8 +169,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
     net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
     fitted_norm = {k: v.clone() for k, v in net.normalizer.state_dict().items()}
+    sob_scale = sobolev_scale_of(cfg, tensors)
     n_samples = next(iter(tensors.values())).shape[0]
-    steps_per_epoch = math.ceil(E / cfg.batch_size)
+    steps_per_epoch = epoch_steps(E, cfg.batch_size)
     total = cfg.epochs * steps_per_epoch
     warmup = cfg.warmup_steps if cfg.warmup_steps is not None else min(500, total // 10)
 
@@ -188,14 +205,15 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if cfg.is_diffusion:
         from sdp_cli.policy.diffusion import make_scheduler
         scheduler = make_scheduler(cfg)
-    loss_fn = make_loss(cfg, scheduler)
+    loss_fn = make_loss(cfg, scheduler, sob_scale)
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
             "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
             "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),
                         "T": int(task.T)},
             "init": str(init) if init is not None else (prev or {}).get("init"),
-            "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev)}
+            "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev),
+            "sobolev_scale": sob_scale}
 
     def checkpoint(path: Path, with_state: bool = True):
         ema.store(net.parameters())
@@ -215,7 +233,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     n_params = sum(p.numel() for p in net.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
         f"{steps_per_epoch} step(s) of {cfg.batch_size}; {cfg.epochs} epochs = {total} steps; "
-        f"{n_params} parameters; device {dev}" + (f"; resuming at step {step}" if prev is not None else ""))
+        f"{n_params} parameters; device {dev}" +
+        (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {sob_scale:.3g}" if cfg.sobolev else "") + (f"; resuming at step {step}" if prev is not None else ""))
     t0 = time.perf_counter()
     last_ck = time.perf_counter()
     net.train()
@@ -223,8 +242,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     try:
         with bar:
             task_id = bar.add_task(cfg.method, total=total, completed=step, info="")
+            order, order_epoch = None, -1
             while step < total:
-                idx = torch.randint(0, n_samples, (cfg.batch_size,), generator=gen, device=dev)
+                epoch, j = divmod(step, steps_per_epoch)
+                if epoch != order_epoch:   # this epoch's E samples, without replacement
+                    order, order_epoch = epoch_indices(n_samples, E, cfg.seed, epoch).to(dev), epoch
+                idx = order[j * cfg.batch_size:(j + 1) * cfg.batch_size]
                 batch = {k: v[idx] for k, v in tensors.items()}
                 loss, parts = loss_fn(net, batch, gen)
                 if not torch.isfinite(loss):

@@ -52,10 +52,11 @@ def _batch(B=6, T_h=8, A=1, n_o=3, ndx=2, state=False):
     return b
 
 
-@pytest.mark.parametrize("state", [False, True])
-def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state):
+@pytest.mark.parametrize("state,path", [(False, "cond"), (True, "cond"), (False, "total"), (True, "total")])
+def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state, path):
     """The hand-written tangent and torch.func.jvp give the same loss and gradients (same RNG draws)."""
-    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_mode="jvp")
+    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_mode="jvp",
+                      sobolev_path=path)
     A = 2 if state else 1
     net = DiffusionNet(cfg, A, 3, 2, 2)
     sch = make_scheduler(cfg)
@@ -76,6 +77,71 @@ def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state):
     assert sob_calls
     torch.testing.assert_close(l1, l2, rtol=1e-5, atol=1e-6)
     assert p1["sobolev"] > 0
+
+
+def test_total_path_is_the_derivative_through_the_noisy_chunk():
+    """sobolev_path "total": both derivative paths the loss uses (autograd ``f`` and the hand-written
+    ``f_jvp``) equal the brute-force Jacobian of the network output w.r.t. delta with
+    tau_k(delta) = sqrt(alpha_bar_k) (tau_0 + J delta) + sqrt(1 - alpha_bar_k) eps; "cond" differs."""
+    import sdp_cli.policy.diffusion as diffusion
+
+    torch.manual_seed(0)
+    net = None
+    got = {}
+
+    def capture(mode, f, d_in, J, n_proj=1, generator=None, f_jvp=None):
+        got["f"], got["f_jvp"] = f, f_jvp
+        return diffusion.__dict__["_orig_sobolev_term"](mode, f, d_in, J, n_proj, generator, f_jvp)
+
+    diffusion._orig_sobolev_term = diffusion.sobolev_term
+    jacs = {}
+    try:
+        diffusion.sobolev_term = capture
+        for path in ("total", "cond"):
+            cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8,
+                              sobolev_path=path)
+            if net is None:
+                net = DiffusionNet(cfg, 1, 3, 2, 2).double()
+            sch = make_scheduler(cfg)
+            b = {k: v.double() for k, v in _batch(B=3).items()}
+            diffusion_loss(net, sch, b, cfg, torch.Generator().manual_seed(5), sobolev=True)
+            J_f = torch.autograd.functional.jacobian(got["f"], torch.zeros(3, 2, dtype=torch.float64))
+            J_f = torch.stack([J_f[i, :, :, i] for i in range(3)])           # (B, T_h - 1, A, ndx)
+            w = torch.tensor([[0.6, -0.8]] * 3, dtype=torch.float64)
+            _, yd = got["f_jvp"](w)
+            torch.testing.assert_close(yd, torch.einsum("btai,bi->bta", J_f, w))
+            jacs[path] = J_f
+    finally:
+        diffusion.sobolev_term = diffusion._orig_sobolev_term
+        del diffusion._orig_sobolev_term
+    g = torch.Generator().manual_seed(5)
+    noise = torch.randn(b["tau0"].shape, generator=g).double()
+    k = torch.randint(0, 5, (3,), generator=g)
+    sab = sch.alphas_cumprod[k].double().sqrt()
+    for i in range(3):
+        def out(delta):
+            tau0 = b["tau0"][i:i + 1] + torch.einsum("btai,i->bta", b["jac"][i:i + 1], delta)
+            tau_k = sab[i] * tau0 + (1 - sab[i] ** 2).sqrt() * noise[i:i + 1]
+            tau_k = torch.cat([b["a_hist"][i:i + 1], tau_k[:, 1:]], dim=1)
+            o = b["obs"][i:i + 1] + torch.einsum("btoi,i->bto", b["obs_jac"][i:i + 1], delta)
+            return net(tau_k, k[i:i + 1], b["xi"][i:i + 1], o)[0, 1:]
+        brute = torch.autograd.functional.jacobian(out, torch.zeros(2, dtype=torch.float64))
+        torch.testing.assert_close(jacs["total"][i], brute)
+        assert (jacs["cond"][i] - brute).abs().max() > 1e-6
+
+
+def test_balance_scale_equalizes_a_zero_predictors_terms_and_ignores_state_units():
+    from sdp_cli.losses.sobolev import balance_scale
+
+    g = torch.Generator().manual_seed(0)
+    target, J = torch.rand(50, 7, 2, generator=g) - 0.5, torch.randn(50, 7, 2, 3, generator=g) * 20
+    rho = balance_scale(target, J)
+    dp_zero = (target ** 2).mean()
+    sob_zero = (J ** 2).reshape(50, -1).sum(1).mean() / 14
+    assert abs(rho * float(sob_zero) - float(dp_zero)) < 1e-6 * float(dp_zero)
+    # states in other units (J scaled by c) give the same weighted loss: rho scales by 1 / c^2
+    assert balance_scale(target, 10 * J) == pytest.approx(rho / 100, rel=1e-9)
+    assert balance_scale(target, torch.zeros_like(J)) == 1.0
 
 
 def test_inpainting_masks_history_rows():

@@ -187,3 +187,48 @@ def test_sobolev_cap_only_lowers_the_sobolev_term(data, tmp_path):
     a, b = rows(tmp_path / "plain")[0], rows(tmp_path / "cap")[0]
     assert float(b["dp"]) == pytest.approx(float(a["dp"]), rel=1e-6)
     assert 0 < float(b["sobolev"]) < float(a["sobolev"])
+
+
+def test_epoch_sampling_without_replacement():
+    from sdp_cli.data.sampling import batch_indices, epoch_indices, steps_per_epoch
+
+    n, E, B = 100, 53, 16
+    assert steps_per_epoch(E, B) == 4
+    for epoch in range(3):
+        idx = epoch_indices(n, E, seed=7, epoch=epoch)
+        assert len(idx) == E and len(set(idx.tolist())) == E and 0 <= int(idx.min()) and int(idx.max()) < n
+        batches = [batch_indices(n, E, B, 7, epoch * 4 + j) for j in range(4)]
+        assert [len(b) for b in batches] == [16, 16, 16, 5]
+        assert torch.equal(torch.cat(batches), idx)
+    assert not torch.equal(epoch_indices(n, E, 7, 0), epoch_indices(n, E, 7, 1))
+    assert torch.equal(epoch_indices(n, E, 7, 2), epoch_indices(n, E, 7, 2))
+    assert len(epoch_indices(10, 10, 0, 0).unique()) == 10       # MLP epochs: every pair once
+
+
+@pytest.mark.parametrize("method", ["sdp", "pddp"])
+def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypatch, method):
+    """Each epoch trains ceil(E / B) steps on E distinct samples, the last batch smaller."""
+    import sdp_cli.train as tr
+
+    seen = []
+    orig = tr.make_loss
+
+    def recording(*a, **kw):
+        fn = orig(*a, **kw)
+
+        def loss(net, batch, g):
+            seen.append(next(iter(batch.values())).clone())
+            return fn(net, batch, g)
+        return loss
+
+    monkeypatch.setattr(tr, "make_loss", recording)
+    c = cfg(method, epochs=2, batch_size=16)
+    path = train(data["ok"], tmp_path / "r", c, device="cpu", progress=False, log=quiet)
+    ck = load_checkpoint(path)
+    E = int(np.ceil(3 * (T - c.T_h) / c.T_h)) if method == "sdp" else 3 * T
+    spe = int(np.ceil(E / 16))
+    assert ck["steps_per_epoch"] == spe and ck["total_steps"] == 2 * spe == len(seen)
+    sizes = [len(b) for b in seen[:spe]]
+    assert sizes == [16] * (spe - 1) + [E - 16 * (spe - 1)]
+    first = torch.cat(seen[:spe])
+    assert len(first) == E and len(torch.unique(first, dim=0)) == E   # no sample twice in an epoch

@@ -86,3 +86,23 @@ def capped_weights(J: torch.Tensor, quantile: float) -> torch.Tensor:
     norms = J.reshape(J.shape[0], -1).norm(dim=1)
     c = torch.quantile(norms.double(), quantile).to(norms.dtype)
     return (c / norms.clamp_min(1e-12)).clamp(max=1.0) ** 2
+
+
+def balance_scale(target: torch.Tensor, J: torch.Tensor) -> float:
+    """``rho = mean(target^2) / mean_s(||J_s||_F^2 / d_out)``: the factor on the Sobolev term under
+    which ``alpha_Sobolev = 1`` weighs the two terms of eqs. (4)/(6) equally on this dataset.
+
+    Principle: alpha is the relative weight of the first-order term, so the scale of the state
+    (whose units are arbitrary: radians or metres, min-max range or standard deviation) must
+    not change its meaning. With ``rho``, the constant predictor at the centre of the action
+    range (zero in normalized units) pays the same expected regression loss and Sobolev loss
+    at alpha = 1; both terms are then measured relative to the size of their targets.
+    Equivalently, the state tangent is rescaled by ``sqrt(rho)`` in every coordinate.
+    ``target (N, *out)``, ``J (N, *out, d_in)`` in normalized units; 1.0 if ``J`` is zero.
+    """
+    d_out = target[0].numel()
+    num = float((target.double() ** 2).mean())
+    den = float((J.double() ** 2).reshape(J.shape[0], -1).sum(1).mean()) / d_out
+    if not (den > 1e-12 and num > 0):
+        return 1.0
+    return num / den

@@ -10,6 +10,7 @@ METHODS = ("sdp", "dp", "pddp", "pddp_s")
 DIFFUSION_METHODS = ("sdp", "dp")
 SOBOLEV_METHODS = ("sdp", "pddp_s")
 SOBOLEV_MODES = ("jvp", "vjp")
+SOBOLEV_PATHS = ("cond", "total")
 
 
 @dataclass
@@ -33,7 +34,11 @@ class TrainConfig:
     # MLP baselines
     mlp_hidden: list = field(default_factory=lambda: [256, 256, 256])
     # Sobolev term
-    alpha_sobolev: float = 1.0
+    alpha_sobolev: float | None = None  # None: the task's default (paper: 1, quadrotor 1e-3)
+    sobolev_balance: bool = True      # scale the Sobolev term so that alpha = 1 weighs both terms
+                                      # equally on the dataset (losses.sobolev.balance_scale)
+    sobolev_path: str = "cond"        # "cond": d/dx through (o_hist, a_hist) only; "total": also
+                                      # through the noisy chunk tau_k (sqrt(alpha_bar_k) J)
     n_proj: int = 1
     sobolev_mode: str = "jvp"        # "jvp": projection on the x side (forward mode); "vjp": eq. (6)
     sobolev_fraction: float = 1.0    # jvp mode: share of each batch that gets the Sobolev term
@@ -79,7 +84,11 @@ class TrainConfig:
             raise SdpError(f"sobolev_fraction must be in (0, 1], got {self.sobolev_fraction}")
         if self.sobolev_fraction < 1 and self.sobolev_mode != "jvp":
             raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
-        if not 0 <= self.alpha_sobolev < float("inf"):
+        if self.sobolev_path not in SOBOLEV_PATHS:
+            raise SdpError(f"sobolev path must be one of {', '.join(SOBOLEV_PATHS)}; got {self.sobolev_path!r}")
+        if self.sobolev_path == "total" and self.method != "sdp":
+            raise SdpError(f"sobolev_path 'total' applies to method sdp, not {self.method!r}")
+        if self.alpha_sobolev is not None and not 0 <= self.alpha_sobolev < float("inf"):
             raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
         if self.sobolev_cap is not None:
             if not 0 < self.sobolev_cap <= 1:

@@ -61,12 +61,15 @@ class DiffusionNet(nn.Module):
 
 
 def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg: TrainConfig,
-                   generator: torch.Generator | None = None, sobolev: bool = False):
+                   generator: torch.Generator | None = None, sobolev: bool = False, sobolev_scale: float = 1.0):
     """``(loss, {"dp": ..., "sobolev": ...})`` for a batch of normalized chunk tensors.
 
     ``batch``: ``tau0 (B, T_h, A)``, ``a_hist (B, T_o, A)``, ``obs (B, T_o, n_o)``,
     ``obs_jac (B, T_o, n_o, ndx)``, ``xi (B, n_xi)``; for Sobolev also ``jac (B, T_h, A, ndx)``
-    and, for state control, ``a_hist_jac (B, T_o, A, ndx)``.
+    and, for state control, ``a_hist_jac (B, T_o, A, ndx)``. The Sobolev term is multiplied by
+    ``sobolev_scale`` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``cfg.alpha_sobolev``.
+    ``cfg.sobolev_path == "total"`` also differentiates through the noisy rows of ``tau_k``
+    (tangent ``sqrt(alpha_bar_k) J`` on rows ``T_o:``); "cond" holds them fixed.
     """
     tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
     B, T_o = tau0.shape[0], cfg.T_o
@@ -82,11 +85,17 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
         return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dev)}
 
     obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
+    # "total": the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k) d tau_0 / dx
+    rest_jac = None
+    if cfg.sobolev_path == "total":
+        sab = scheduler.alphas_cumprod.to(dev)[k].sqrt().to(tau0.dtype)
+        rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
 
     def f(delta):   # delta (B, ndx) -> predicted tau_0 rows T_o: (B, T_h - T_o, A)
         o = obs + torch.einsum("btoi,bi->bto", obs_jac, delta)
         a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
-        return net(torch.cat([a, rest], dim=1), k, xi, o)[:, T_o:]
+        r = rest if rest_jac is None else rest + torch.einsum("btai,bi->bta", rest_jac, delta)
+        return net(torch.cat([a, r], dim=1), k, xi, o)[:, T_o:]
 
     # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
     n_s = B if cfg.sobolev_mode == "vjp" else max(1, round(cfg.sobolev_fraction * B))
@@ -94,9 +103,12 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
         o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
         tau_d = None
-        if a_hist_jac is not None:
-            tau_d = torch.cat([torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w), torch.zeros_like(rest[:n_s])],
-                              dim=1)
+        if a_hist_jac is not None or rest_jac is not None:
+            a_d = (torch.zeros_like(a_hist[:n_s]) if a_hist_jac is None
+                   else torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w))
+            r_d = (torch.zeros_like(rest[:n_s]) if rest_jac is None
+                   else torch.einsum("btai,bi->bta", rest_jac[:n_s], w))
+            tau_d = torch.cat([a_d, r_d], dim=1)
         y, yd = net.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
         return y[:, T_o:], yd[:, T_o:]
 
@@ -104,8 +116,8 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
     dp = ((pred - tau0[:, T_o:]) ** 2).mean()
     w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
-    sob = term.mean() if w is None else (w[:n_s] * term).mean()
-    loss = dp + cfg.alpha_sobolev * sob
+    sob = sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
+    loss = dp + (1.0 if cfg.alpha_sobolev is None else cfg.alpha_sobolev) * sob   # None: train() sets the task's
     return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
 

@@ -40,8 +40,10 @@ class MLPNet(nn.Module):
 
 
 def mlp_loss(net: MLPNet, batch: dict, cfg: TrainConfig, generator: torch.Generator | None = None,
-             sobolev: bool = False):
-    """Eq. (4) (or plain regression): ``batch`` has ``obs, obs_jac, u, xi`` and ``jac`` = K (normalized)."""
+             sobolev: bool = False, sobolev_scale: float = 1.0):
+    """Eq. (4) (or plain regression): ``batch`` has ``obs, obs_jac, u, xi`` and ``jac`` = K (normalized).
+    The Sobolev term is multiplied by ``sobolev_scale`` (:func:`~sdp_cli.losses.sobolev.balance_scale`)
+    and then by ``cfg.alpha_sobolev``; the ``sobolev`` part reported is the scaled term."""
     obs, obs_jac, u, xi = batch["obs"], batch["obs_jac"], batch["u"], batch["xi"]
     if not sobolev:
         reg = ((net(obs, xi) - u) ** 2).mean()
@@ -53,5 +55,6 @@ def mlp_loss(net: MLPNet, batch: dict, cfg: TrainConfig, generator: torch.Genera
     J = batch["jac"]
     pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator)
     reg = ((pred - u) ** 2).mean()
-    sob = term.mean()
-    return reg + cfg.alpha_sobolev * sob, {"dp": reg.detach(), "sobolev": sob.detach()}
+    sob = sobolev_scale * term.mean()
+    alpha = 1.0 if cfg.alpha_sobolev is None else cfg.alpha_sobolev   # None: train() sets the task's
+    return reg + alpha * sob, {"dp": reg.detach(), "sobolev": sob.detach()}

@@ -130,6 +130,7 @@ class QuadrotorTask(Task):
     """Hector quadrotor flying to a goal at the same height among vertical columns."""
 
     action = "x"
+    alpha_sobolev = 1e-3   # paper Sec. IV: "alpha_Sobolev = 1e-3 performs better" on the quadrotor
 
     def __init__(self, n_obstacles: int = 0, T: int = 180, dt: float = 0.01, name: str | None = None):
         if n_obstacles not in COLUMNS:
