@@ -3,7 +3,7 @@
     python bench/regression_threshold.py [--seeds 0,1,2,3,4] [--threads 1,2] [--thread-seeds 0,1]
                                          [--variants sdp,alpha0,flipped,dp] [--jobs 2] [--out /tmp/regr]
 
-Runs the `small` experiment's Algorithm 1 (pendulum, 2 iterations x 10 trajectories x 300 epochs,
+Runs the `small` experiment's Algorithm 1 (pendulum, 2 iterations x 10 trajectories x 700 epochs,
 T_h 16, T_a 8, batch 128, 20 test instances; pipelines/small.yaml) with `sdp loop`, once per
 seed and torch thread count, for
 
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-SMALL = ["--task", "pendulum", "--n-algo", "2", "--n-traj", "10", "--epochs", "300", "--horizon", "16",
+SMALL = ["--task", "pendulum", "--n-algo", "2", "--n-traj", "10", "--epochs", "700", "--horizon", "16",
          "--t-a", "8", "--eval-t-a", "8", "--n-test", "20", "--batch-size", "128", "--workers", "1"]
 VARIANTS = {"sdp": ["--method", "sdp"], "alpha0": ["--method", "sdp", "--alpha-sobolev", "0"],
             "flipped": ["--method", "sdp"], "dp": ["--method", "dp"]}

@@ -337,9 +337,18 @@ def pipeline_cmd(
     experiment: Annotated[str, typer.Argument(help="Experiment name: a file pipelines/<name>.yaml (" + ", ".join(
         sorted(p.stem for p in Path("pipelines").glob("*.yaml"))) + " here).")],
     params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
+    estimate: Annotated[bool, typer.Option("--estimate", help="Print each run's training steps, samples and estimated hours (training calibrated here in <= 60 s), and the totals; writes nothing.")] = False,
+    workers: Annotated[int, typer.Option(help="--estimate: parallel worker processes for the total.")] = 2,
 ) -> None:
     """Select the experiment that `dvc repro` runs (expands pipelines/<name>.yaml into params.yaml)."""
     from sdp_cli.pipeline import select_experiment
+
+    if estimate:
+        from sdp_cli.estimate import estimate as run_estimate, format_estimate
+
+        df, totals = run_estimate(experiment, workers, log=lambda s: typer.echo(s, err=True))
+        typer.echo(format_estimate(experiment, df, totals))
+        return
 
     counts = select_experiment(experiment, params)
     typer.echo(f"selected {experiment!r} in {params}: " + ", ".join(f"{v} {k}" for k, v in counts.items())

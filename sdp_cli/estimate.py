@@ -1,0 +1,266 @@
+"""``sdp pipeline NAME --estimate``: what an experiment will cost, before it runs; writes nothing.
+
+Per run (one task x method x seed x n_traj of the experiment, all its iterations):
+
+- training: the steps of every iteration, ``epochs * ceil(E / B)`` with ``E = n_traj (T - T_h) / T_h``
+  chunks (``n_traj T`` pairs for the MLPs) and ``B = min(batch_size, E)`` samples per step, as
+  ``sdp train`` runs them (:mod:`sdp_cli.data.sampling`); the time per step is **measured** on this
+  machine (one torch thread, the real loss, backward, clipping, AdamW and EMA on a batch of the
+  task's shapes), at the smallest and largest batch the experiment uses, linear in between;
+- trajectory optimization: collection (``n_traj`` solves per iteration), the test-set refinements
+  (two solves per test instance: from the policy's guess and alone, four with
+  ``single_shooting``); per-solve times are reference means from ``results/tasks/TO_alone.md``
+  (fatrop multiple shooting and ipopt single shooting from the naive guess, 2-core x86_64), not
+  measured here, since compiling a task's optimizer can itself take minutes;
+- rollouts: ``ceil(T / T_a) * K`` network evaluations on the test batch (a forward costs about a
+  third of a training step).
+
+Calibration is bounded by ``budget_s`` (default 60 s). Totals are given for one process and for
+``workers`` processes (the sum divided by ``workers``, but never less than the longest run, whose
+iterations depend on each other).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from sdp_cli.errors import SdpError
+
+#: seconds per solve from the naive guess, (fatrop multiple shooting, ipopt single shooting):
+#: means of results/tasks/TO_alone.md; quadrotor-1/-3 use quadrotor-9's (an upper bound)
+TO_REFERENCE_S = {"pendulum": (0.002, 0.18), "double_pendulum": (0.010, 0.155), "ur5": (0.108, 50.3),
+                  "quadrotor-0": (0.046, 112.0), "quadrotor-1": (0.63, 120.0), "quadrotor-3": (0.63, 120.0),
+                  "quadrotor-9": (0.63, 120.0), "quadrotor": (0.63, 120.0)}
+
+
+def to_reference(task: str) -> tuple[float, float]:
+    """Reference (multiple shooting, single shooting) seconds per solve of ``task``."""
+    if task in TO_REFERENCE_S:
+        return TO_REFERENCE_S[task]
+    for prefix in ("ur5", "quadrotor"):
+        if task.startswith(prefix):
+            return TO_REFERENCE_S[prefix]
+    return TO_REFERENCE_S["double_pendulum"]
+
+
+def _opts(s: str) -> dict:
+    """``"--batch-size 128 --lr 0.001"`` -> {"batch_size": "128", "lr": "0.001"} (switches map to "")."""
+    toks, out, i = s.split(), {}, 0
+    while i < len(toks):
+        key = toks[i].lstrip("-").replace("-", "_")
+        if i + 1 < len(toks) and not toks[i + 1].startswith("--"):
+            out[key], i = toks[i + 1], i + 2
+        else:
+            out[key], i = "", i + 1
+    return out
+
+
+@dataclass
+class TrainStage:
+    run: str
+    iteration: int
+    task: str
+    method: str
+    T_h: int
+    n_traj: int
+    epochs: int
+    batch_size: int
+    action: str | None
+    data: str = ""
+    E: int = 0
+    B: int = 0
+    steps: int = 0
+
+
+def _run_of(key: str) -> tuple[str, int]:
+    run, it = key.rsplit("-it", 1)
+    return run, int(it)
+
+
+def training_stages(stages: dict) -> list[TrainStage]:
+    """One :class:`TrainStage` per training stage of an expanded experiment, with its sizes."""
+    from sdp_cli.data.sampling import steps_per_epoch
+    from sdp_cli.policy.config import DIFFUSION_METHODS
+    from sdp_cli.tasks import get_task
+
+    colls = {**stages["collect_first"], **stages["collect_next"]}
+    data_of = {f"{c['dir']}/data.npz": c for c in colls.values()}
+    out = []
+    for key, tr in {**stages["train_first"], **stages["train_next"]}.items():
+        coll = data_of[tr["data"]]
+        run, it = _run_of(key)
+        o = _opts(tr.get("opts", ""))
+        task = get_task(coll["task"])
+        st = TrainStage(run, it, coll["task"], tr["method"], int(tr["horizon"]), int(coll["n_traj"]),
+                        int(tr["epochs"]), int(o.get("batch_size", 256)), o.get("action"), tr["data"])
+        if st.method in DIFFUSION_METHODS:
+            st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
+        else:
+            st.E = st.n_traj * task.T
+        st.B = min(st.batch_size, st.E)
+        st.steps = st.epochs * steps_per_epoch(st.E, st.batch_size)
+        out.append(st)
+    return out
+
+
+def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Generator, device) -> dict:
+    r = lambda *s: (torch.rand(*s, generator=gen) * 2 - 1).to(device)
+    A, n_o, n_xi, ndx = dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"]
+    if method in ("sdp", "dp"):
+        b = {"tau0": r(B, T_h, A), "obs": r(B, 1, n_o), "obs_jac": r(B, 1, n_o, ndx), "xi": r(B, n_xi),
+             "jac": r(B, T_h, A, ndx)}
+        b["a_hist"] = b["tau0"][:, :1]
+        return b
+    return {"obs": r(B, n_o), "obs_jac": r(B, n_o, ndx), "u": r(B, A), "xi": r(B, n_xi), "jac": r(B, A, ndx)}
+
+
+def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
+                 max_s: float = 5.0) -> float:
+    """Measured seconds of one training step (loss, backward, clipping, AdamW, EMA); median of the
+    steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
+    from diffusers.training_utils import EMAModel
+
+    from sdp_cli.data.chunks import task_with_action
+    from sdp_cli.policy.checkpoint import build_net
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.tasks import get_task
+    from sdp_cli.train import make_loss
+
+    task = get_task(task_name)
+    cfg = TrainConfig(method=method, T_h=T_h, batch_size=B, action=action)
+    if cfg.is_diffusion:
+        t = task_with_action(task, action or task.action)
+        dims = {"n_action": t.n_action, "n_obs": task.n_obs + task.nu, "n_xi": task.n_xi, "ndx": task.ndx}
+    else:
+        dims = {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+    torch.manual_seed(0)
+    net = build_net(cfg, dims).to(device)
+    sched = None
+    if cfg.is_diffusion:
+        from sdp_cli.policy.diffusion import make_scheduler
+        sched = make_scheduler(cfg)
+    loss_fn = make_loss(cfg, sched)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr)
+    ema = EMAModel(net.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, power=cfg.ema_power)
+    gen = torch.Generator().manual_seed(0)
+    batch = _synthetic_batch(method, dims, T_h, B, gen, device)
+    g = torch.Generator(device=device).manual_seed(0)
+
+    def step():
+        loss, _ = loss_fn(net, batch, g)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+        opt.step()
+        ema.step(net.parameters())
+        loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
+
+    step()
+    times, t_start = [], time.perf_counter()
+    while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
+              log=lambda s: None) -> dict:
+    """``{(task, method, T_h, action): (B_lo, t_lo, B_hi, t_hi)}`` measured step times."""
+    combos: dict = {}
+    for st in train:
+        combos.setdefault((st.task, st.method, st.T_h, st.action), set()).add(st.B)
+    n_meas = sum(min(2, len(bs)) for bs in combos.values())
+    per = max(0.2, 0.8 * budget_s / max(n_meas, 1) - 0.3)
+    out = {}
+    for key, bs in combos.items():
+        lo, hi = min(bs), max(bs)
+        t_lo = step_seconds(*key[:3], lo, key[3], device, per)
+        t_hi = t_lo if hi == lo else step_seconds(*key[:3], hi, key[3], device, per)
+        out[key] = (lo, t_lo, hi, t_hi)
+        log(f"calibrated {key[1]} on {key[0]} (T_h {key[2]}): {t_lo * 1e3:.1f} ms at B={lo}"
+            + (f", {t_hi * 1e3:.1f} ms at B={hi}" if hi != lo else ""))
+    return out
+
+
+def _interp(cal: tuple, B: int) -> float:
+    lo, t_lo, hi, t_hi = cal
+    return t_lo if hi == lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
+
+
+def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None) -> tuple[pd.DataFrame, dict]:
+    """Per-run estimate of experiment ``name`` and the totals (see the module docstring)."""
+    from sdp_cli.pipeline import expand, load_experiment
+    from sdp_cli.tasks import get_task
+
+    if workers <= 0:
+        raise SdpError(f"workers must be > 0, got {workers}")
+    stages = expand(name, load_experiment(name))
+    train = training_stages(stages)
+    if not train:
+        raise SdpError(f"experiment {name!r} has no training stage")
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    prev_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cals = {d: calibrate(train, d, budget_s / len(devices), log) for d in devices}
+    finally:
+        torch.set_num_threads(prev_threads)
+    rows: dict[str, dict] = {}
+    for st in train:
+        r = rows.setdefault(st.run, {"run": st.run, "task": st.task, "method": st.method, "iterations": 0,
+                                     "steps": 0, "samples": 0, **{f"train_{d}_s": 0.0 for d in devices},
+                                     "to_s": 0.0, "rollout_s": 0.0})
+        r["iterations"] += 1
+        r["steps"] += st.steps
+        r["samples"] += st.epochs * st.E
+        for d in devices:
+            r[f"train_{d}_s"] += st.steps * _interp(cals[d][(st.task, st.method, st.T_h, st.action)], st.B)
+    for key, c in {**stages["collect_first"], **stages["collect_next"]}.items():
+        ms, _ = to_reference(c["task"])
+        if key in stages["collect_next"]:
+            rows[_run_of(key)[0]]["to_s"] += c["n_traj"] * ms
+        else:   # iteration 0's collection is shared by the runs that use it: charge it to the first
+            users = [st.run for st in train if st.data == f"{c['dir']}/data.npz"]
+            if users:
+                rows[users[0]]["to_s"] += c["n_traj"] * ms
+    for key, ev in stages["evaluate"].items():
+        run = key.split("-it")[0]
+        r = rows[run]
+        task = get_task(r["task"])
+        ms, ss = to_reference(r["task"])
+        r["to_s"] += 2 * ev["n_test"] * ms + (2 * ev["n_test"] * ss if ev["refine_opts"] else 0.0)
+        st = next(s for s in train if s.run == run)
+        t_a = int(ev["t_a"].split()[-1]) if ev["t_a"] else max(1, st.T_h - 1)
+        calls = (math.ceil(task.T / t_a) * 5) if st.method in ("sdp", "dp") else task.T
+        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(ev["n_test"], st.B)) / 3
+        r["rollout_s"] += calls * fwd
+    df = pd.DataFrame(list(rows.values()))
+    for d in devices:
+        df[f"total_{d}_s"] = df[f"train_{d}_s"] + df["to_s"] + df["rollout_s"]
+    totals = {}
+    for d in devices:
+        col = df[f"total_{d}_s"]
+        totals[d] = {"sequential_s": float(col.sum()),
+                     "workers": workers, "parallel_s": float(max(col.sum() / workers, col.max()))}
+    return df, totals
+
+
+def format_estimate(name: str, df: pd.DataFrame, totals: dict) -> str:
+    """The table ``sdp pipeline --estimate`` prints: hours per run and the totals."""
+    show = df.copy()
+    for c in [c for c in show.columns if c.endswith("_s")]:
+        show[c.replace("_s", "_h")] = show.pop(c) / 3600
+    lines = [f"estimate for {name!r}: {len(df)} runs, {int(df.steps.sum())} training steps, "
+             f"{int(df.samples.sum())} samples (training time measured here; TO times are references)",
+             show.to_string(index=False, float_format=lambda v: f"{v:.3f}")]
+    for d, t in totals.items():
+        lines.append(f"total on {d}: {t['sequential_s'] / 3600:.2f} h in one process; "
+                     f"{t['parallel_s'] / 3600:.2f} h with {t['workers']} parallel workers")
+    return "\n".join(lines)
