@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -194,14 +195,15 @@ def _interp(cal: tuple, B: int) -> float:
     return t_lo if hi == lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
 
 
-def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None) -> tuple[pd.DataFrame, dict]:
+def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
+             root: Path = Path(".")) -> tuple[pd.DataFrame, dict]:
     """Per-run estimate of experiment ``name`` and the totals (see the module docstring)."""
     from sdp_cli.pipeline import expand, load_experiment
     from sdp_cli.tasks import get_task
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
-    stages = expand(name, load_experiment(name))
+    stages = expand(name, load_experiment(name, root))
     train = training_stages(stages)
     if not train:
         raise SdpError(f"experiment {name!r} has no training stage")

@@ -57,3 +57,33 @@ def test_version_and_pipeline_help_list_what_exists():
 
     names = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "pipelines").glob("*.yaml"))
     assert r.exit_code == 0 and f"({', '.join(names)} here)" in " ".join(r.output.split())
+
+
+def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypatch):
+    """small: 10 pendulum trajectories, T_h 16 -> E = ceil(10 * 84 / 16) = 53 chunks, one step of 53 per
+    epoch; fig2: 30 double-pendulum trajectories -> E = 158 at B = 256."""
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli import app
+    from sdp_cli.estimate import estimate, training_stages
+
+    small = training_stages(expand("small", load_experiment("small", root=ROOT)))
+    assert len(small) == 4 and {(s.E, s.B) for s in small} == {(53, 53)}
+    assert all(s.steps == s.epochs for s in small)
+    fig2 = training_stages(expand("fig2", load_experiment("fig2", root=ROOT)))
+    assert {(s.E, s.B) for s in fig2 if s.method in ("sdp", "dp")} == {(158, 158)}
+    df, totals = estimate("small", workers=2, budget_s=4, root=ROOT)
+    assert list(df.run) == ["pendulum-sdp-n10-s0", "pendulum-dp-n10-s0"]
+    assert list(df.steps) == [2 * 700, 2 * 700] and list(df.samples) == [2 * 700 * 53] * 2
+    assert (df.train_cpu_s > 0).all() and (df.to_s > 0).all()
+    assert float(df.train_cpu_s.iloc[0]) > float(df.train_cpu_s.iloc[1])     # an SDP step costs more than DP's
+    t = totals["cpu"]
+    assert t["parallel_s"] == pytest.approx(max(t["sequential_s"] / 2, float(df.total_cpu_s.max())))
+    # the CLI writes nothing (params.yaml untouched) and prints the totals
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "small.yaml").write_text((ROOT / "pipelines" / "small.yaml").read_text())
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    r = CliRunner().invoke(app, ["pipeline", "small", "--estimate", "--workers", "3"])
+    assert r.exit_code == 0, r.output
+    assert "with 3 parallel workers" in r.output and sorted(p.name for p in tmp_path.rglob("*")) == before
