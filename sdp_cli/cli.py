@@ -133,7 +133,7 @@ def rollout_cmd(
     seed: Annotated[int, typer.Option(help="Test seed: instances are disjoint from every training seed.")] = 0,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
-    device: Annotated[str, typer.Option(help="cpu, cuda or auto.")] = "cpu",
+    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")] = "auto",
     threads: ThreadsOpt = 1,
 ) -> None:
     """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
@@ -299,7 +299,7 @@ def loop_cmd(
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     workers: Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")] = None,
-    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "cpu",
+    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda: training and rollouts.")] = "auto",
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's).")] = None,

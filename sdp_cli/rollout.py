@@ -90,7 +90,7 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
     task: Task = policy.task
     n, T = len(xis), task.T
     if generators is None:
-        generators = instance_generators(config.seed, range(n), policy.device)
+        generators = instance_generators(config.seed, range(n))   # CPU: a seed means the same on a GPU
     X = np.full((n, T + 1, task.nx), np.nan)
     U = np.full((n, T, task.nu), np.nan)
     X[:, 0] = np.stack([task.initial_state(xi) for xi in xis])

@@ -178,7 +178,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
                             foreach=True)   # one fused pass over the ~200 tensors (bitwise the same result)
     sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
-    gen = torch.Generator(device=dev).manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)   # CPU: the same draws on CPU and GPU
     if init_ck is not None:
         net.load_state_dict(init_ck["ema_model"] or init_ck["model"])
     ema = EMAModel(net.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,

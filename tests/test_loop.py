@@ -73,7 +73,25 @@ def test_report_of_a_loop_run(loop_dir, tmp_path):
         metrics = pd.read_csv(loop_dir / f"it{k}" / "policy" / "metrics.csv")
         assert row.train_steps == metrics.step.iloc[-1] and row.train_s == pytest.approx(metrics.wall_time.iloc[-1])
         assert row.collect_solve_s > 0 and row.eval_rollout_s > 0
-        assert row.total_s == pytest.approx(row.collect_solve_s + row.train_s + row.eval_rollout_s + row.eval_solve_s)
+        assert row.collect_wall_s >= row.collect_solve_s     # the stage's wall time, not only the solver's
+        assert str(row.eval_t_a_values) == "4"                # the T_a values, not their count
+        assert row.total_s == pytest.approx(row.collect_wall_s + row.train_s + row.eval_rollout_s + row.eval_solve_s)
+    # one seed: no confidence interval ("n/a", with the seed count), never a 0.0 that reads as certainty
+    raw = pd.read_csv(res / "fig2a_pendulum.csv", keep_default_na=False)
+    assert set(raw.ci95.astype(str)) == {"n/a"} and set(fig2a.n_seeds) == {1}
+    t2c = pd.read_csv(res / "table2c_pendulum.csv")
+    assert {"policy cost (median)", "policy success rate", "TO iterations warm-started by the policy"} <= set(t2c)
+    last = pd.read_csv(loop_dir / "summary.csv").query("iteration == 1").iloc[0]
+    assert t2c["policy success rate"].iloc[0] == pytest.approx(last.success_rate)
+    assert t2c["policy cost (median)"].iloc[0] == pytest.approx(last.policy_cost_median)
+    assert "no `pipelines/tiny.yaml`" in (res / "README.md").read_text()
+    # a second report over fewer runs removes what the first wrote and this one does not; NOTES.md stays
+    (res / "fig1_acrobot.png").write_bytes(b"old")
+    (res / "NOTES.md").write_text("hand-written")
+    r = runner.invoke(app, ["report", "--runs", str(loop_dir.parent), "--out", str(res), "--experiment", "tiny"])
+    assert r.exit_code == 0, r.output
+    assert not (res / "fig1_acrobot.png").exists() and (res / "NOTES.md").read_text() == "hand-written"
+    assert (res / "fig2a_pendulum.csv").is_file()
     # the refine artifacts carry TO alone and refined solutions for the trajectory plot
     f, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")
     assert f["inst_base_X"].shape == (3, 101, 2) and bool(f["inst_base_converged"].all())

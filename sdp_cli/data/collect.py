@@ -355,6 +355,6 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
                     task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,
                     stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
                            "convergence_rate": stats.convergence_rate,
-                           "mean_solve_time": stats.mean_solve_time})
+                           "mean_solve_time": stats.mean_solve_time, "wall_time": stats.wall_time})
     store.remove()
     return path, stats

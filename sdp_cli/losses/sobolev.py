@@ -26,8 +26,10 @@ from torch.func import jvp
 
 def random_unit(shape: tuple, generator: torch.Generator | None = None, device=None,
                 dtype=None) -> torch.Tensor:
-    """Vectors uniform on the unit sphere over the trailing dims of ``shape[1:]`` (per row)."""
-    v = torch.randn(shape, generator=generator, device=device, dtype=dtype)
+    """Vectors uniform on the unit sphere over the trailing dims of ``shape[1:]`` (per row); drawn on
+    the generator's device (training uses a CPU generator, so a seed means the same on a GPU)."""
+    v = torch.randn(shape, generator=generator, device=generator.device if generator is not None else device,
+                    dtype=dtype).to(device)
     flat = v.reshape(shape[0], -1)
     return (flat / flat.norm(dim=1, keepdim=True).clamp_min(1e-12)).reshape(shape)
 

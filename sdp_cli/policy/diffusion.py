@@ -74,8 +74,9 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
     B, T_o = tau0.shape[0], cfg.T_o
     dev = tau0.device
-    noise = torch.randn(tau0.shape, generator=generator, device=dev)
-    k = torch.randint(0, cfg.K, (B,), generator=generator, device=dev)
+    gdev = generator.device if generator is not None else dev   # CPU generator: same draws on a GPU
+    noise = torch.randn(tau0.shape, generator=generator, device=gdev).to(dev)
+    k = torch.randint(0, cfg.K, (B,), generator=generator, device=gdev).to(dev)
     tau_k = scheduler.add_noise(tau0, noise, k)
     rest = tau_k[:, T_o:]
     if not sobolev:

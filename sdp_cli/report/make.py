@@ -21,6 +21,7 @@ commit that produced it.
 from __future__ import annotations
 
 import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,9 @@ def _save_fig(fig, path: Path) -> Path:
 
 
 def _save_csv(df: pd.DataFrame, path: Path) -> Path:
+    """CSV; a ``ci95`` column reads "n/a" where there is no interval (one seed: see ``n_seeds``)."""
+    if "ci95" in df:
+        df = df.assign(ci95=[("n/a" if pd.isna(h) else h) for h in df["ci95"]])
     return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
 
 
@@ -217,9 +221,10 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
-TABLE2C = {"policy_cost_mean": "policy cost", "refined_cost_mean": "refined cost (TO from policy guess)",
+TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "policy cost (median)",
+           "success_rate": "policy success rate", "refined_cost_mean": "refined cost (TO warm-started by the policy)",
            "refined_converged_rate": "refined converged", "argmin_cost_mean": "ArgminCost(refined, TO alone)",
-           "refined_iterations_mean": "TO iterations from policy guess", "rollout_time_per_instance": "rollout time (s)",
+           "refined_iterations_mean": "TO iterations warm-started by the policy", "rollout_time_per_instance": "rollout time (s)",
            "refined_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
            "to_alone_cost_mean": "TO alone cost", "to_alone_iterations_mean": "TO alone iterations",
            "to_alone_solve_time_mean": "TO alone time (s)"}
@@ -318,9 +323,24 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         for fn in (fig1, fig2a, fig2b, table2c, trajectories, timing):
             written += fn(df, task, out)
     written.append(_index(df, runs, out, experiment, written))
+    _remove_stale(out, written)
     if out.resolve().parent.name == "results":
         written.append(_top_index(out.resolve().parent))
     return written
+
+
+#: the files ``sdp report`` writes into its output folder (hand-written ones such as NOTES.md are kept)
+REPORT_FILE = re.compile(r"^(all_runs\.csv|README\.md|(fig1|fig2a|fig2b|table2c|traj|timing)_.+\.(csv|md|png))$")
+
+
+def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
+    """Delete report files an earlier report left in ``out`` that this one did not write
+    (e.g. a task or a figure whose runs are gone), so the folder shows this report only."""
+    keep = {p.resolve() for p in written}
+    stale = [p for p in out.iterdir() if p.is_file() and REPORT_FILE.match(p.name) and p.resolve() not in keep]
+    for p in stale:
+        p.unlink()
+    return stale
 
 
 def _top_index(results: Path) -> Path:
@@ -344,9 +364,12 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
         epochs=("epochs", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
         iterations=("iteration", lambda s: int(s.max()) + 1),
         n_test=("n", "max"), t_a=("t_a", lambda s: ",".join(str(v) for v in sorted(set(s.dropna()))))).reset_index())
-    lines = [f"# Results: {experiment or runs.name}", "",
-             f"Produced by `sdp report --runs {runs} --out {out}` at commit `{git_revision()}`",
-             f"from the experiment `{experiment or runs.name}` (see `pipelines/{experiment or runs.name}.yaml`).", "",
+    name = experiment or runs.name
+    spec = Path("pipelines") / f"{name}.yaml"
+    source = (f"from the experiment `{name}` (see `pipelines/{name}.yaml`)." if spec.is_file()
+              else f"from the runs in `{runs}` (no `pipelines/{name}.yaml`: e.g. `sdp loop` runs).")
+    lines = [f"# Results: {name}", "",
+             f"Produced by `sdp report --runs {runs} --out {out}` at commit `{git_revision()}`", source, "",
              "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]

@@ -58,14 +58,15 @@ def load_runs(root: str | Path) -> pd.DataFrame:
 
 def mean_ci(values: pd.Series) -> tuple[float, float, int]:
     """Mean and 95% confidence half-width (normal approximation over seeds) of finite values;
-    the mean is +inf if any value is infinite (a diverged seed)."""
+    the mean is +inf if any value is infinite (a diverged seed); the half-width is NaN (no
+    interval) with fewer than two seeds."""
     v = np.asarray(values, dtype=float)
     if np.any(np.isinf(v)):
         return float("inf"), float("nan"), len(v)
     v = v[np.isfinite(v)]
     if v.size == 0:
         return float("nan"), float("nan"), 0
-    half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else 0.0
+    half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else float("nan")
     return float(v.mean()), float(half), int(v.size)
 
 

@@ -3,11 +3,13 @@
 Columns (seconds of wall time, from the artifacts themselves):
 
 - ``collect_solve_s``: TO solves of the collection (``attempts x mean_solve_time`` of the
-  dataset's stats; the policy rollouts that warm-start them are not timed separately);
+  dataset's stats); ``collect_wall_s``: the whole collection stage (optimizer compilation or
+  loading, warm-starting rollouts, solves, writing), where the dataset records it;
 - ``train_steps``, ``train_s`` (the run's ``metrics.csv`` wall time, carried across resumes),
   ``train_s_per_step``;
 - ``eval_rollout_s`` and ``eval_solve_s``: rollouts of the test set and the TO solves of its
-  refinement (policy guess + TO alone), summed over the T_a values evaluated at that iteration;
+  refinement (policy guess + TO alone), summed over the T_a values evaluated at that iteration
+  (``eval_t_a_values``, e.g. "1,4,8");
 - ``total_s``: the sum.
 """
 
@@ -29,13 +31,15 @@ def _iteration_dir(source: str) -> Path | None:
     return None
 
 
-def _collect_seconds(it_dir: Path) -> float:
+def _collect_seconds(it_dir: Path) -> tuple[float, float]:
+    """(solver seconds, wall seconds) of an iteration's collection; NaN where unknown."""
     data = it_dir / "data.npz"
     if not data.is_file():  # DVC layout: the naive-guess dataset of iteration 0 is shared elsewhere
-        return float("nan")
+        return float("nan"), float("nan")
     _, meta = load_npz(data, kind="dataset")
     stats = meta.get("stats") or {}
-    return float(stats.get("attempts", np.nan)) * float(stats.get("mean_solve_time", np.nan))
+    return (float(stats.get("attempts", np.nan)) * float(stats.get("mean_solve_time", np.nan)),
+            float(stats.get("wall_time", np.nan)))
 
 
 def _train(it_dir: Path) -> tuple[float, float]:
@@ -63,11 +67,14 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
         # mean over the instances solved from a guess x their number (older rows: mean over all, rate 1)
         solve = (_col(g, "refined_solve_time_mean", 0.0) * n * _col(g, "refined_solved_rate", 1.0)
                  + _col(g, "to_alone_solve_time_mean", 0.0) * n)
+        c_solve, c_wall = _collect_seconds(it_dir)
         row = {"method": method, "train_seed": int(seed), "iteration": int(it),
-               "collect_solve_s": _collect_seconds(it_dir), "train_steps": steps, "train_s": train_s,
+               "collect_solve_s": c_solve, "collect_wall_s": c_wall, "train_steps": steps, "train_s": train_s,
                "train_s_per_step": train_s / steps if steps else np.nan,
-               "eval_t_a_values": len(g), "eval_rollout_s": float(g.rollout_time.sum()),
+               "eval_t_a_values": ",".join(str(int(t)) for t in sorted(g.t_a.dropna().unique())),
+               "eval_rollout_s": float(g.rollout_time.sum()),
                "eval_solve_s": float(np.sum(solve))}
-        row["total_s"] = float(np.nansum([row["collect_solve_s"], train_s, row["eval_rollout_s"], row["eval_solve_s"]]))
+        collect = c_wall if np.isfinite(c_wall) else c_solve
+        row["total_s"] = float(np.nansum([collect, train_s, row["eval_rollout_s"], row["eval_solve_s"]]))
         rows.append(row)
     return pd.DataFrame(rows).sort_values(["method", "train_seed", "iteration"]) if rows else pd.DataFrame()
