@@ -72,6 +72,10 @@ ThreadsOpt = Annotated[int, typer.Option(
          "busy or 2-core CPU, and results do not depend on the machine's core count).")]
 
 
+ProgressOpt = Annotated[bool, typer.Option(
+    "--progress/--no-progress", help="Progress bars on stderr (only on a terminal: never under DVC or a pipe).")]
+
+
 def set_threads(threads: int) -> None:
     """Pin torch's intra-op threads (every command that runs a network calls this first)."""
     if threads <= 0:
@@ -102,10 +106,11 @@ def collect_cmd(
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
     threads: ThreadsOpt = 1,
+    progress: ProgressOpt = True,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
     from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
-    from sdp_cli.progress import collect_progress
+    from sdp_cli.progress import collect_progress, status
 
     set_threads(threads)
     if workers is not None and workers <= 0:
@@ -115,7 +120,9 @@ def collect_cmd(
                            policy_fingerprint=policy_fingerprint(policy) if policy else None,
                            t_a=t_a, k_rollout=k_rollout)
     out = out or Path("data") / f"{task}-n{n_traj}-s{seed}.npz"
-    with collect_progress(n_traj) as on_update:
+    status(f"{task}: loading the optimizer in each worker (compiled with gcc on first use: minutes for the "
+           f"larger tasks, then cached)", progress)
+    with collect_progress(n_traj, progress) as on_update:
         path, stats = collect(config, out, workers=workers, progress=on_update, executor=executor,
                               scheduler=scheduler)
     typer.echo(f"wrote {path}: {stats.kept} trajectories, {stats.rejected} rejected "
@@ -135,15 +142,17 @@ def rollout_cmd(
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
     device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")] = "auto",
     threads: ThreadsOpt = 1,
+    progress: ProgressOpt = True,
 ) -> None:
     """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
+    from sdp_cli.progress import count_progress
     from sdp_cli.rollout import RolloutConfig, rollout
     from sdp_cli.train import resolve_device
 
     set_threads(threads)
-
-    path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
-                      task_name=task, device=str(resolve_device(device)))
+    with count_progress("rollout (time steps)", None, progress) as on_step:
+        path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
+                          task_name=task, device=str(resolve_device(device)), on_step=on_step)
     typer.echo(f"wrote {path}: {s['method']} mean cost {s['mean_cost']:.3g} (median {s['median_cost']:.3g}), "
                f"{s['reached']}/{s['n']} reached, {s['diverged']} diverged, {s['rollout_time']:.2f} s")
 
@@ -159,14 +168,17 @@ def refine_cmd(
     workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
     executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
     scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
+    progress: ProgressOpt = True,
 ) -> None:
     """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
+    from sdp_cli.progress import count_progress
     from sdp_cli.refine import refine
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
-    path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, single_shooting=single_shooting,
-                     workers=workers, executor=executor, scheduler=scheduler)
+    with count_progress("refine (instances)", None, progress) as on_done:
+        path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, single_shooting=single_shooting,
+                         workers=workers, executor=executor, scheduler=scheduler, progress=on_done)
     typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins}; "
                f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
                f"mean solve {s.mean_pol_time:.3f} s vs {s.mean_base_time:.3f} s")
@@ -246,7 +258,7 @@ def train_cmd(
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out (after a kill).")] = False,
     init: Annotated[Optional[Path], typer.Option(help="Start from this checkpoint (weights, EMA, normalizer).")] = None,
     threads: ThreadsOpt = 1,
-    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+    progress: ProgressOpt = True,
 ) -> None:
     """Train a policy on a dataset (Algorithm 1, lines 11-23)."""
     from sdp_cli.policy.config import TrainConfig
@@ -309,6 +321,7 @@ def loop_cmd(
     sobolev_balance: Annotated[Optional[bool], typer.Option("--sobolev-balance/--no-sobolev-balance", help="Balance the Sobolev term (default on; see `sdp train --help`).", show_default=False)] = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
     threads: ThreadsOpt = 1,
+    progress: ProgressOpt = True,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
     from sdp_cli.loop import LoopConfig, run_loop
@@ -325,7 +338,7 @@ def loop_cmd(
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
                      train_options=opts, single_shooting=single_shooting)
-    summary = run_loop(cfg, out, log=typer.echo)
+    summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]
     typer.echo(summary[cols].to_string(index=False))

@@ -153,9 +153,10 @@ def _train_done(policy_dir: Path) -> bool:
 
 
 def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra: dict,
-                       log: Callable[[str], None], last: bool = False) -> pd.DataFrame:
+                       log: Callable[[str], None], last: bool = False, progress: bool = False) -> pd.DataFrame:
     """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a."""
     from sdp_cli.evaluate import evaluation_row, write_evaluation
+    from sdp_cli.progress import count_progress
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout
 
@@ -167,20 +168,25 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
         tag = f"ta{t_a}" if t_a is not None else "ta-default"
         ro, rf = eval_dir / f"rollout_{tag}.npz", eval_dir / f"refined_{tag}.npz"
         if not ro.exists():
-            _, s = rollout(policy_dir, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
-                                                         k_rollout=cfg.k_rollout), device=cfg.device)
+            with count_progress(f"rollout {tag} (time steps)", None, progress) as on_step:
+                _, s = rollout(policy_dir, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
+                                                             k_rollout=cfg.k_rollout), device=cfg.device,
+                               on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
         if not rf.exists():
-            refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
-                   executor=cfg.executor or "local", scheduler=cfg.scheduler)
+            with count_progress(f"refine {tag} (instances)", None, progress) as on_done:
+                refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
+                       executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done)
         rows.append(evaluation_row(ro, rf, extra))
     df = pd.DataFrame(rows)
     write_evaluation(rows, eval_dir / "eval.csv")
     return df
 
 
-def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print) -> pd.DataFrame:
-    """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table."""
+def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print,
+             progress: bool = False) -> pd.DataFrame:
+    """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
+    ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
     from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.train import train
@@ -201,7 +207,11 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                                  policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
                                  t_a=cfg.t_a if prev_policy else None,
                                  k_rollout=cfg.k_rollout if prev_policy else None)
-            collect(ccfg, data, workers=cfg.workers, executor=cfg.executor or "local", scheduler=cfg.scheduler)
+            from sdp_cli.progress import collect_progress
+
+            with collect_progress(ccfg.n_traj, progress) as on_update:
+                collect(ccfg, data, workers=cfg.workers, executor=cfg.executor or "local", scheduler=cfg.scheduler,
+                        progress=on_update)
         datasets.append(data)
         train_data = data
         if not cfg.reset_buffer and k > 0:
@@ -214,11 +224,11 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
             tcfg = TrainConfig.from_dict({**TrainConfig().to_dict(), "method": cfg.method, "epochs": cfg.epochs,
                                           "seed": cfg.seed, "T_h": cfg.horizon, **cfg.train_options})
             train(train_data, policy_dir, tcfg, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
-                  init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=False,
+                  init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,
                   log=lambda s: None)
         log(f"[it{k}] evaluate on {cfg.n_test} test instances")
         df = run_iteration_eval(policy_dir, d / "eval", cfg, {"iteration": k, "loop_seed": cfg.seed}, log,
-                                last=k == cfg.n_algo - 1)
+                                last=k == cfg.n_algo - 1, progress=progress)
         tables.append(df)
         prev_policy = policy_dir
     summary = pd.concat(tables, ignore_index=True)

@@ -142,7 +142,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
            scheduler: str | None = None) -> tuple[Path, RefineStats]:
     """Refine every rollout of an artifact; write a dataset artifact to ``out``.
 
-    ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``
+    ``progress(done, n)`` is called after each instance. ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``
     (:func:`sdp_cli.executor.make_executor`, or an open executor, not closed here). A job
     that raises counts as an instance where nothing converged.
     """
@@ -176,7 +176,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         for i, res in ex.imap_unordered(refine_instance, argsets):
             recs[i] = res.value if res.ok else failed_record(arrays["xi"][i], error_status(res.error))
             if progress:
-                progress(sum(r is not None for r in recs))
+                progress(sum(r is not None for r in recs), n)
     finally:
         if own:
             ex.close()

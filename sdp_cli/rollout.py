@@ -81,7 +81,7 @@ def instance_generators(seed: int, indices, device="cpu") -> list[torch.Generato
 
 def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
                    generators: list[torch.Generator] | None = None,
-                   on_step: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+                   on_step: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """Algorithm 2 for a batch of instances ``xis (n, n_xi)``; returns ``X (n, T+1, nx)``, ``U (n, T, nu)``.
 
     ``generators``: one per instance (see :func:`instance_generators`); default seeded by
@@ -123,7 +123,7 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
             t += len(rows)
             alive &= np.all(np.isfinite(X[:, min(t, T)]), axis=1)
             if on_step:
-                on_step(min(t, T))
+                on_step(min(t, T), T)
     return {"X": X, "U": U}
 
 
@@ -146,7 +146,7 @@ def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray)
 
 def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: RolloutConfig,
             task_name: str | None = None, device: str = "cpu",
-            on_step: Callable[[int], None] | None = None) -> tuple[Path, dict]:
+            on_step: Callable[[int, int], None] | None = None) -> tuple[Path, dict]:
     """Load a policy, roll it out on the test set, write a ``rollout`` artifact."""
     from sdp_cli.policy import load_policy
 

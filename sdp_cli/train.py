@@ -37,6 +37,7 @@ from sdp_cli.policy.config import TrainConfig
 
 ARCH_FIELDS = ("T_h", "T_o", "K", "down_dims", "kernel_size", "n_groups", "step_embed_dim", "clip_sample",
                "action", "mlp_hidden")
+METRICS_EVERY_S = 5.0   # metrics.csv is appended to this often (and rewritten with each checkpoint)
 METRIC_FIELDS = ("step", "epoch", "loss", "dp", "sobolev", "lr", "grad_norm", "wall_time")
 
 
@@ -230,6 +231,16 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                                       "wall_time": wall0 + (time.perf_counter() - t0)}
         save_checkpoint(path, payload)
         atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
+        flushed[0] = len(rows)
+
+    def flush_metrics():
+        """Append the rows since the last write (metrics.csv follows training every few seconds)."""
+        if flushed[0] == 0:
+            atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
+        else:
+            with open(out / "metrics.csv", "a", newline="") as f:
+                csv.DictWriter(f, fieldnames=METRIC_FIELDS).writerows(rows[flushed[0]:])
+        flushed[0] = len(rows)
 
     n_params = sum(p.numel() for p in net.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
@@ -237,7 +248,10 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         f"{n_params} parameters; device {dev}" +
         (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {sob_scale:.3g}" if cfg.sobolev else "") + (f"; resuming at step {step}" if prev is not None else ""))
     t0 = time.perf_counter()
-    last_ck = time.perf_counter()
+    last_ck = last_flush = time.perf_counter()
+    if prev is not None:   # drop rows the killed run logged after its last checkpoint
+        atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
+    flushed = [len(rows) if prev is not None else 0]
     net.train()
     bar = _progress(progress)
     try:
@@ -270,6 +284,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                                                              f"sob {rows[-1]['sobolev']} lr {rows[-1]['lr']}")
                 if step % steps_per_epoch == 0 and (step // steps_per_epoch) in cfg.save_at:
                     checkpoint(out / f"epoch_{step // steps_per_epoch}.pt", with_state=False)
+                if time.perf_counter() - last_flush >= METRICS_EVERY_S:
+                    flush_metrics()
+                    last_flush = time.perf_counter()
                 if step < total and time.perf_counter() - last_ck >= cfg.checkpoint_every_s:
                     checkpoint(ck_path)
                     last_ck = time.perf_counter()
@@ -285,12 +302,13 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 
 
 def _progress(enabled: bool):
+    from sdp_cli.progress import enabled as progress_enabled
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                     TimeRemainingColumn(), TextColumn("{task.fields[info]}"),
-                    console=Console(stderr=True), disable=not enabled or os.environ.get("SDP_NO_PROGRESS") == "1",
+                    console=Console(stderr=True), disable=not progress_enabled(enabled),
                     transient=False)
 
 

@@ -232,3 +232,18 @@ def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypat
     assert sizes == [16] * (spe - 1) + [E - 16 * (spe - 1)]
     first = torch.cat(seen[:spe])
     assert len(first) == E and len(torch.unique(first, dim=0)) == E   # no sample twice in an epoch
+
+
+def test_metrics_csv_follows_training_between_checkpoints(data, tmp_path, monkeypatch):
+    """metrics.csv is appended to while training runs (not only with each checkpoint), row for row."""
+    import sdp_cli.train as tr
+
+    monkeypatch.setattr(tr, "METRICS_EVERY_S", 0.0)
+    seen = {}
+
+    def look(step):
+        seen[step] = [int(r["step"]) for r in rows(tmp_path / "r")]
+
+    train(data["ok"], tmp_path / "r", cfg("dp", epochs=4, batch_size=16), device="cpu", progress=False, log=quiet,
+          on_step=look)
+    assert seen and all(v == list(range(1, s + 1)) for s, v in seen.items())
