@@ -32,6 +32,19 @@ from sdp_cli.report.runs import load_runs, mean_ci, run_revisions
 
 DIVERGED = 1e5
 COLORS = {"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}
+MARKERS = {"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}
+CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
+
+
+def _log_ticks(axis, lo: float, hi: float) -> None:
+    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... as plain
+    numbers, no minor labels."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
+
+    ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 2, 5) if lo <= m * 10 ** e <= hi]
+    axis.set_major_locator(FixedLocator(ticks))
+    axis.set_major_formatter(StrMethodFormatter("{x:g}"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _plt():
@@ -97,6 +110,11 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     n_all = tab["n_traj"].astype(float)
     ax.set_xscale("log")
     ax.set_xlim(n_all.min() / 1.5, n_all.max() * 1.5)  # also when every mean diverged (no point drawn)
+    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
+
+    ax.xaxis.set_major_locator(FixedLocator(sorted(set(n_all))))     # the dataset sizes run
+    ax.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(0, top * 1.05)
     ax.set_xlabel("n_traj (trajectories in the dataset)")
     ax.set_ylabel("mean cost on test instances")
@@ -142,28 +160,43 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         g = g.sort_values("iteration")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         a = ax2 if curve == "policy success rate" else ax
-        a.errorbar(g["iteration"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), marker="o", capsize=3,
-                   ls={"refined": "--", "ArgminCost": ":"}.get(curve, "-"), color=COLORS.get(method),
-                   label=f"{method.upper()} {curve}" if a is ax else method.upper())
+        # methods side by side around each iteration, so equal values (e.g. 0% success) stay visible
+        shift = 0.06 * (methods.index(method) - (len(methods) - 1) / 2)
+        a.errorbar(g["iteration"][ok] + shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0),
+                   marker=MARKERS.get(method, "o"), capsize=3, ls=CURVE_STYLES.get(curve, "-"),
+                   color=COLORS.get(method), mfc="white" if curve == "ArgminCost" else COLORS.get(method))
         if a is ax:  # one ∞ per method and iteration, side by side
-            shift = 0.08 * (methods.index(method) - (len(methods) - 1) / 2)
             for it in g["iteration"][~ok]:
                 ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
     if np.isfinite(to):
-        ax.axhline(to, color="black", ls=":", label="TO alone")
+        ax.axhline(to, color="black", ls="-.", lw=1)
+    # legends from explicit handles: colour and marker = method, line style = curve
+    from matplotlib.lines import Line2D
+
+    m_handles = [Line2D([], [], color=COLORS.get(m), marker=MARKERS.get(m, "o"), ls="-", label=m.upper())
+                 for m in methods]
+    c_handles = [Line2D([], [], color="0.3", ls=CURVE_STYLES[c], lw=1.6,
+                        label={"policy": "policy rollout", "refined": "refined (TO warm-started by the policy)",
+                               "ArgminCost": "ArgminCost(refined, TO alone)"}[c])
+                 for c in CURVE_STYLES if c in set(costs.curve)]
+    if np.isfinite(to):
+        c_handles.append(Line2D([], [], color="black", ls="-.", lw=1, label="TO alone (naive guess)"))
     iters = sorted(int(i) for i in tab.iteration.unique())
     for a in (ax, ax2):
         a.set_xticks(iters)
         a.set_xlabel("algorithm iteration")
     ax.set_yscale("log")
     ax.set_ylim(lo, top * 1.2)
+    _log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
     ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
-    ax.legend(fontsize=7)
+    first = ax.legend(handles=c_handles, fontsize=7, loc="upper right")
+    ax.add_artist(first)
+    ax.legend(handles=m_handles, fontsize=7, loc="lower left")
     ax2.set_ylim(-0.03, 1.03)
-    ax2.set_ylabel("policy rollouts reaching the goal")
+    ax2.set_ylabel("share of policy rollouts reaching the goal")
     ax2.set_title("policy success rate", fontsize=10)
-    ax2.legend(fontsize=7)
+    ax2.legend(handles=m_handles, fontsize=7)
     fig.tight_layout()
     return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
 
@@ -207,12 +240,15 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     # TO alone is the same solve for every method (same test instances): show it once
     first = sorted(tab.method.unique())[0]
     base = base[base.method == first].iterations
-    ax.hist(base, bins=bins, alpha=0.5, color="gray", label=f"TO alone (naive guess), mean {base.mean():.0f}")
+    ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
+            label=f"TO alone (naive guess), mean {base.mean():.0f}")
     for method, g in tab[tab.guess == "policy"].groupby("method"):
-        ax.hist(g.iterations, bins=bins, alpha=0.5, color=COLORS.get(method),
+        ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method),
                 label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
     ax.set_xscale("log")
-    ax.set_xlim(max(0.8, tab.iterations.min() / 1.5), hi * 1.5)
+    lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
+    ax.set_xlim(lo_x, hi_x)
+    _log_ticks(ax.xaxis, lo_x, hi_x)
     ax.set_xlabel("TO iterations")
     ax.set_ylabel("instances")
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
@@ -244,62 +280,75 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration)")]
 
 
-def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
-    """TO alone vs policy vs refined on a few test instances of the best run (last iteration).
+def _best_rollout(d: pd.DataFrame):
+    """(rollout path, refine path) of the best evaluated row of ``d`` that has both files."""
+    d = d.sort_values(["success_rate", "policy_cost_median"], ascending=[False, True])
+    for row in d.itertuples():
+        rf = _refined_file(row.source, row.t_a)
+        ro = rf and rf.with_name(rf.name.replace("refined", "rollout"))
+        if rf is not None and ro.is_file():
+            return ro, rf
+    return None
 
-    Pendulums in the y-z plane, UR5 and quadrotor seen from above (x-y) with the columns;
-    start (blue dot) and goal (red star) of each instance. TO alone and refined come from the
-    refine artifact's ``inst_base_X`` / ``inst_pol_X`` (older artifacts: the kept solution).
+
+def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
+    """TO alone vs each method's policy and refined solution on a few test instances (the best
+    run of each method at the last iteration; the test instances are the same for all).
+
+    Pendulums: the tip in the y-z plane; UR5 and quadrotor seen from above (x-y) with the
+    columns; start (blue dot) and goal (red star) of each instance. TO alone and refined come
+    from the refine artifact's ``inst_base_X`` / ``inst_pol_X``.
     """
     from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
 
     d = _loop_t_a(df[df.task == task_name])
     d = d[d.iteration == d.iteration.max()]
-    d = d.sort_values(["success_rate", "policy_cost_median"], ascending=[False, True])  # the best run
-    for row in d.itertuples():
-        rf = _refined_file(row.source, row.t_a)
-        ro = rf and rf.with_name(rf.name.replace("refined", "rollout"))
-        if rf is not None and ro.is_file():
-            break
-    else:
+    found = {m: _best_rollout(g) for m, g in d.groupby("method")}
+    found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}
+    if not found:
         return []
-    r, rmeta = load_npz(ro, kind="rollout")
-    f, _ = load_npz(rf, kind="dataset")
-    task = get_task(task_name, **(rmeta.get("task_options") or {}))
-    n = len(r["X"])
-    if "inst_base_X" in f:
-        to_alone, refined = f["inst_base_X"], f["inst_pol_X"]
-    else:  # artifacts written before both solutions were stored: the kept solution only
-        to_alone, refined = np.full_like(r["X"], np.nan), np.full_like(r["X"], np.nan)
-        for k, i in enumerate(f.get("index", [])):
-            refined[int(i)] = f["X"][k]
+    runs = {}
+    for m, (ro, rf) in sorted(found.items()):
+        r, rmeta = load_npz(ro, kind="rollout")
+        f, _ = load_npz(rf, kind="dataset")
+        runs[m] = (r, f, rmeta, ro)
+    r0, f0, meta0, _ = next(iter(runs.values()))
+    task = get_task(task_name, **(meta0.get("task_options") or {}))
     top = task.nq > 2
     ix, iy = (0, 1) if top else (1, 2)
-    method = rmeta.get("method", "")
     plt = _plt()
-    n_show = min(n_show, n)
-    fig, axes = plt.subplots(1, n_show, figsize=(3.2 * max(n_show, 2), 3.4), squeeze=False)
+    n_show = min(n_show, len(r0["X"]))
+    fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), 3.6), squeeze=False)
     for j, ax in enumerate(axes[0]):
-        xi = r["xi"][j]
+        xi = r0["xi"][j]
         if top:
             _draw_columns_top(ax, task)
-        for label, X, c, ls in (("TO alone", to_alone[j], "tab:pink", "-"),
-                                (f"{method.upper()} policy", r["X"][j], COLORS.get(method, "tab:orange"), "-"),
-                                ("refined", refined[j], "0.3", "--")):
+
+        def draw(X, label, **kw):
             if np.all(np.isfinite(X)):
                 P = trajectory_points(task, X)
-                ax.plot(P[:, ix], P[:, iy], color=c, ls=ls, lw=1.4, label=label)
+                ax.plot(P[:, ix], P[:, iy], label=label, **kw)
+        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7)
+        for m, (r, f, _, _) in runs.items():
+            draw(r["X"][j], f"{m.upper()} policy", color=COLORS.get(m, "tab:orange"), lw=1.4)
+            draw(f["inst_pol_X"][j], f"refined from {m.upper()}", color=COLORS.get(m, "tab:orange"), lw=1.0,
+                 ls="--")
         P0 = trajectory_points(task, task.initial_state(xi)[None])
         ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
         g = goal_point(task, xi)
         if g is not None:
-            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=9, label="goal")
+            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
         ax.set_title(f"test instance {j}", fontsize=9)
+        ax.set_xlabel("x (m)" if top else "y (m)")
+        ax.set_ylabel("y (m)" if top else "z (m)")
         ax.set_aspect("equal", adjustable="datalim")
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle(f"{task_name}: TO alone vs {method.upper()} policy vs refined "
-                 f"({'x-y plane, from above' if top else 'y-z plane'}; {ro.stem})", fontsize=10)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
+    what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
+    its = ", ".join(f"{m.upper()} {v[3].parent.parent.parent.name}" for m, v in runs.items())
+    fig.suptitle(f"{task_name}: TO alone vs policy vs refined ({what}; {its})", fontsize=9)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
 
 

@@ -65,10 +65,12 @@ def _draw_columns_top(ax, task) -> None:
     import matplotlib.patches as mpatches
 
     r_quad = float(getattr(task, "r_quad", 0.0))
-    for cx, cy, r in np.asarray(getattr(task, "columns", np.zeros((0, 3)))):
-        ax.add_patch(mpatches.Circle((cx, cy), r, color="0.45", alpha=0.5, lw=0))
+    for k, (cx, cy, r) in enumerate(np.asarray(getattr(task, "columns", np.zeros((0, 3))))):
+        ax.add_patch(mpatches.Circle((cx, cy), r, color="0.45", alpha=0.5, lw=0, label="column" if k == 0 else None))
         if r_quad:
-            ax.add_patch(mpatches.Circle((cx, cy), r + r_quad, fill=False, ls="--", color="0.5", lw=0.8))
+            ax.add_patch(mpatches.Circle((cx, cy), r + r_quad, fill=False, ls="--", color="0.5", lw=0.8,
+                                         label=f"column + airframe radius {r_quad:g} m (the constraint on the "
+                                               f"centre)" if k == 0 else None))
 
 
 def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int = 120,
@@ -126,18 +128,27 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
             lo[:2] = np.minimum(lo[:2], (cols[:, :2] - cols[:, 2:]).min(0))
             hi[:2] = np.maximum(hi[:2], (cols[:, :2] + cols[:, 2:]).max(0))
     if hasattr(task, "base_marker"):
-        ax.scatter(*task.base_marker, color="k", marker="s", s=30, depthshade=False, label="robot base")
-        top.scatter(*task.base_marker[:2], color="k", marker="s", s=30)
+        b = np.asarray(task.base_marker, dtype=float)
+        lo, hi = np.minimum(lo, b), np.maximum(hi, b)     # the base is drawn inside the axes
+        ax.scatter(*b, color="k", marker="s", s=30, depthshade=False, label="robot base")
+        top.scatter(*b[:2], color="k", marker="s", s=30)
     span = np.maximum(hi - lo, 1e-3)
     pad = 0.05 * span.max()
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_zlim(lo[2] - pad, hi[2] + pad)
     ax.set_box_aspect(tuple(span + 2 * pad))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):     # few ticks: no overlapping labels on short axes
+        axis.set_major_locator(MaxNLocator(4))
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("x [m]", labelpad=6)
+    ax.set_ylabel("y [m]", labelpad=6)
+    ax.set_zlabel("z [m]", labelpad=6)
     ax.legend(loc="upper left", fontsize=8)
+    if top.get_legend_handles_labels()[0]:   # below the axes: the columns stay visible
+        top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=7, ncol=2, frameon=False)
     top.set_xlim(lo[0] - pad, hi[0] + pad)
     top.set_ylim(lo[1] - pad, hi[1] + pad)
     top.set_aspect("equal")
@@ -148,6 +159,7 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     fig.suptitle(title or f"{meta['task']}: {n} of {len(X)} trajectories ({Path(path).name})", fontsize=11)
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format=out.suffix.lower().lstrip(".").replace("jpg", "jpeg"), dpi=dpi)
+    fig.subplots_adjust(wspace=0.35)
+    fig.savefig(buf, format=out.suffix.lower().lstrip(".").replace("jpg", "jpeg"), dpi=dpi, bbox_inches="tight")
     plt.close(fig)
     return atomic_write_bytes(out, lambda f: f.write(buf.getvalue())), n
