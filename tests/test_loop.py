@@ -85,12 +85,24 @@ def test_report_of_a_loop_run(loop_dir, tmp_path):
     assert t2c["policy success rate"].iloc[0] == pytest.approx(last.success_rate)
     assert t2c["policy cost (median)"].iloc[0] == pytest.approx(last.policy_cost_median)
     assert "no `pipelines/tiny.yaml`" in (res / "README.md").read_text()
+    # data series for `dvc plots`: one training curve per iteration (the metrics, thinned), loop costs per method
+    curves = sorted((res / "curves").glob("*.csv"))
+    assert [p.name[-8:] for p in curves] == ["-it0.csv", "-it1.csv"]
+    c = pd.read_csv(curves[0])
+    metrics = pd.read_csv(loop_dir / "it0" / "policy" / "metrics.csv")
+    assert list(c.columns) == ["step", "epoch", "loss", "dp", "sobolev", "lr"] and len(c) <= 500
+    assert c.step.iloc[-1] == metrics.step.iloc[-1] and c.loss.iloc[0] == pytest.approx(metrics.loss.iloc[0])
+    loop = pd.read_csv(res / "loop" / "pendulum-sdp.csv")
+    assert list(loop.iteration) == [0, 1] and loop.policy.tolist() == pytest.approx(
+        pd.read_csv(loop_dir / "summary.csv").policy_cost_mean.tolist())
     # a second report over fewer runs removes what the first wrote and this one does not; NOTES.md stays
+    (res / "curves" / "old-run-it0.csv").write_text("step,loss\n")
     (res / "fig1_acrobot.png").write_bytes(b"old")
     (res / "NOTES.md").write_text("hand-written")
     r = runner.invoke(app, ["report", "--runs", str(loop_dir.parent), "--out", str(res), "--experiment", "tiny"])
     assert r.exit_code == 0, r.output
     assert not (res / "fig1_acrobot.png").exists() and (res / "NOTES.md").read_text() == "hand-written"
+    assert not (res / "curves" / "old-run-it0.csv").exists()
     assert (res / "fig2a_pendulum.csv").is_file()
     # the refine artifacts carry TO alone and refined solutions for the trajectory plot
     f, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")

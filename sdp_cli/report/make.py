@@ -368,9 +368,13 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     runs, out = Path(runs), Path(out)
     df = load_runs(runs)
     written = [_save_csv(df.drop(columns=["source"]), out / "all_runs.csv")]
+    from sdp_cli.report.curves import loop_costs, training_curves
+
     for task in sorted(df.task.dropna().unique()):
         for fn in (fig1, fig2a, fig2b, table2c, trajectories, timing):
             written += fn(df, task, out)
+        written += loop_costs(df, task, out, _loop_t_a(df[df.task == task]))
+    written += training_curves(df, out)
     written.append(_index(df, runs, out, experiment, written))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
@@ -387,6 +391,9 @@ def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
     (e.g. a task or a figure whose runs are gone), so the folder shows this report only."""
     keep = {p.resolve() for p in written}
     stale = [p for p in out.iterdir() if p.is_file() and REPORT_FILE.match(p.name) and p.resolve() not in keep]
+    for sub in ("curves", "loop"):    # the dvc plots series are all the report's
+        if (out / sub).is_dir():
+            stale += [p for p in (out / sub).iterdir() if p.is_file() and p.resolve() not in keep]
     for p in stale:
         p.unlink()
     return stale
@@ -431,6 +438,12 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
             lines.append(f"| {task} | {method} | {its} | `{rev}` |")
     lines += ["", "## Files", ""]
     lines += [f"- `{p.name}`" for p in files if p.parent == out]
+    n_curves = sum(1 for p in files if p.parent == out / "curves")
+    n_loop = sum(1 for p in files if p.parent == out / "loop")
+    if n_curves or n_loop:
+        lines.append(f"- `curves/` ({n_curves} files: training curves per run and iteration, thinned to <= 500 rows) "
+                     f"and `loop/` ({n_loop} files: costs and success per iteration, per task and method): data "
+                     f"series for `dvc plots show`")
     if (out / "NOTES.md").is_file():
         lines += ["", "Notes on this run (how it was run, what did not finish): [NOTES.md](NOTES.md)."]
     return atomic_write_bytes(out / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))

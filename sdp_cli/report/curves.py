@@ -1,0 +1,57 @@
+"""Data-series files for ``dvc plots``: training curves and the loop's costs, one CSV per series.
+
+- ``curves/<run>-it<k>.csv``: the run's training metrics (``step, epoch, loss, dp, sobolev, lr``),
+  thinned to at most ``MAX_ROWS`` rows (every n-th step, the last one kept) so that long runs stay
+  small enough to commit;
+- ``loop/<task>-<method>.csv``: per algorithm iteration, ``policy`` and ``refined`` mean costs and the
+  policy's ``success`` rate, means over seeds at the loop's T_a (diverged means left empty).
+
+``dvc.yaml`` declares them as top-level plots (``dvc plots show``, ``dvc plots diff``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import atomic_write_bytes
+from sdp_cli.report.runs import ITERATION_DIR
+
+MAX_ROWS = 500
+CURVE_FIELDS = ["step", "epoch", "loss", "dp", "sobolev", "lr"]
+
+
+def _save(df: pd.DataFrame, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
+
+
+def training_curves(df: pd.DataFrame, out: Path) -> list[Path]:
+    """One thinned metrics CSV per trained policy that the evaluated rows point to."""
+    written, done = [], set()
+    for source, run in df[["source", "run"]].drop_duplicates().itertuples(index=False):
+        it_dir = next((p for p in (Path(source), *Path(source).parents) if ITERATION_DIR.match(p.name)), None)
+        m = it_dir / "policy" / "metrics.csv" if it_dir is not None else None
+        if m is None or not m.is_file() or m in done:
+            continue
+        done.add(m)
+        curve = pd.read_csv(m)
+        if curve.empty:
+            continue
+        keep = np.unique(np.r_[np.arange(0, len(curve), max(1, int(np.ceil(len(curve) / MAX_ROWS)))), len(curve) - 1])
+        name = f"{run if isinstance(run, str) and run else it_dir.parent.name}-{it_dir.name}.csv"
+        written.append(_save(curve.iloc[keep][[c for c in CURVE_FIELDS if c in curve]], out / "curves" / name))
+    return written
+
+
+def loop_costs(df: pd.DataFrame, task: str, out: Path, loop_rows: pd.DataFrame) -> list[Path]:
+    """``loop/<task>-<method>.csv``, x = iteration (``loop_rows``: the rows at the loop's T_a)."""
+    cols = {"policy_cost_mean": "policy", "refined_cost_mean": "refined", "success_rate": "success"}
+    written = []
+    for method, g in loop_rows.groupby("method"):
+        m = g.groupby("iteration")[[c for c in cols if c in g]].mean().rename(columns=cols)
+        m = m.replace([np.inf, -np.inf], np.nan).reset_index()
+        written.append(_save(m, out / "loop" / f"{task}-{method}.csv"))
+    return written
