@@ -1,0 +1,166 @@
+"""Our optimizer against crocoddyl on the same OCP instances, side by side in one process.
+
+    # crocoddyl brings its own pinocchio: run this in a separate environment (docs/benchmarks.md)
+    python bench/crocoddyl_compare.py [--tasks pendulum,double_pendulum,ur5-fixed] [--n 10] [--repeats 3]
+
+For every task crocoddyl can express (the pendulums and UR5: full actuation, box-bounded torques, no
+state constraints; the quadrotor's column constraints are not expressible in BoxFDDP), the OCP of
+``sdp_cli.tasks`` is rebuilt with crocoddyl's residual models on the *same* Pinocchio model object:
+
+- dynamics: ``DifferentialActionModelFreeFwdDynamics`` + ``IntegratedActionModelEuler`` (semi-implicit
+  Euler, our ``Task.f_step``; checked: both roll the same controls out to the same states);
+- costs: ``1/2 sum_i w_i ||r_i||^2`` residuals, running costs multiplied by dt by the Euler model;
+  pendulums: frame translation (10) and control (0.1), terminal frame translation (10);
+  UR5: state (q 1e-4, v 1e-2) and control (1e-4), terminal frame translation (100), frame velocity in
+  LOCAL_WORLD_ALIGNED (100) and state (1e-4);
+- control bounds: the task's ``u_lb``/``u_ub`` (BoxFDDP; BoxDDP is also timed).
+
+Each instance (collection seed 0, index i) is solved from the task's naive guess by our fatrop
+multiple shooting (``get_solver``, tolerance 1e-6, gains off) and by crocoddyl (max 1000 iterations,
+threshold 1e-9 on the stopping criterion); the cost of each solution is evaluated by *our* cost function
+(so both are measured by the same yardstick), and the best of ``--repeats`` wall times is kept.
+Prints one row per task and solver and the time ratio ours / crocoddyl.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+
+
+def croc_problem(task, xi):
+    import crocoddyl
+    import pinocchio as pin
+
+    state = crocoddyl.StateMultibody(task.model)
+    act = crocoddyl.ActuationModelFull(state)
+    nu = act.nu
+    run, term = crocoddyl.CostModelSum(state, nu), crocoddyl.CostModelSum(state, nu)
+
+    keep = [state, act, run, term]   # crocoddyl's bindings do not keep argument objects alive: we do
+
+    def quad(residual, weights=None):
+        a = (crocoddyl.ActivationModelQuad(residual.nr) if weights is None
+             else crocoddyl.ActivationModelWeightedQuad(np.asarray(weights, dtype=float)))
+        c = crocoddyl.CostModelResidual(state, a, residual)
+        keep.extend([residual, a, c])
+        return c
+
+    if task.name in ("pendulum", "double_pendulum"):
+        from sdp_cli.tasks.pendulum import W_GOAL, W_GOAL_T, W_U
+
+        goal = crocoddyl.ResidualModelFrameTranslation(state, task.tip, task.goal, nu)
+        run.addCost("goal", quad(goal), W_GOAL)
+        run.addCost("u", quad(crocoddyl.ResidualModelControl(state, nu)), W_U)
+        term.addCost("goal", quad(crocoddyl.ResidualModelFrameTranslation(state, task.tip, task.goal, nu)), W_GOAL_T)
+    elif task.name.startswith("ur5"):
+        from sdp_cli.tasks.ur5 import W_EE_T, W_Q, W_TWIST_T, W_U, W_V, W_X_T
+
+        x_ref = np.zeros(state.nx)
+        run.addCost("x", quad(crocoddyl.ResidualModelState(state, x_ref, nu), [W_Q] * task.nq + [W_V] * task.nv), 1.0)
+        run.addCost("u", quad(crocoddyl.ResidualModelControl(state, nu)), W_U)
+        term.addCost("ee", quad(crocoddyl.ResidualModelFrameTranslation(state, task.ee, task.target(xi), nu)), W_EE_T)
+        term.addCost("twist", quad(crocoddyl.ResidualModelFrameVelocity(state, task.ee, pin.Motion.Zero(),
+                                                                       pin.LOCAL_WORLD_ALIGNED, nu)), W_TWIST_T)
+        term.addCost("x", quad(crocoddyl.ResidualModelState(state, x_ref, nu)), W_X_T)
+    else:
+        raise SystemExit(f"crocoddyl cannot express {task.name!r} here (state constraints)")
+    dam_run = crocoddyl.DifferentialActionModelFreeFwdDynamics(state, act, run)
+    dam_term = crocoddyl.DifferentialActionModelFreeFwdDynamics(state, act, term)
+    running = crocoddyl.IntegratedActionModelEuler(dam_run, task.dt)
+    running.u_lb, running.u_ub = task.u_lb.astype(float), task.u_ub.astype(float)
+    terminal = crocoddyl.IntegratedActionModelEuler(dam_term, 0.0)
+    problem = crocoddyl.ShootingProblem(task.initial_state(xi), [running] * task.T, terminal)
+    problem.nthreads = 1   # one thread, as our solver and every sdp process
+    _KEEP.append(keep + [dam_run, dam_term, running, terminal, problem])
+    return problem
+
+
+_KEEP: list = []
+
+
+def check_same_dynamics(task, xi) -> float:
+    """Max state difference between crocoddyl's and our rollout of random bounded controls."""
+    problem = croc_problem(task, xi)
+    rng = np.random.default_rng(0)
+    U = rng.uniform(task.u_lb, task.u_ub, (task.T, task.nu)) * 0.2
+    xs = problem.rollout(list(U))
+    X = task.simulate(task.initial_state(xi), U)
+    return float(np.max(np.abs(np.array(xs) - X)))
+
+
+def solve_croc(task, xi, kind: str, max_iter: int = 1000):
+    import crocoddyl
+
+    problem = croc_problem(task, xi)
+    solver = {"BoxFDDP": crocoddyl.SolverBoxFDDP, "BoxDDP": crocoddyl.SolverBoxDDP}[kind](problem)
+    _KEEP.append(solver)
+    solver.th_stop = 1e-9
+    X0, U0 = task.naive_guess(xi)
+    t0 = time.perf_counter()
+    ok = solver.solve(list(X0), list(U0), max_iter, False)
+    wall = time.perf_counter() - t0
+    return np.array(solver.xs), np.array(solver.us), bool(ok), int(solver.iter), wall
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tasks", default="pendulum,double_pendulum,ur5-fixed")
+    ap.add_argument("--n", type=int, default=10)
+    ap.add_argument("--repeats", type=int, default=3)
+    a = ap.parse_args()
+    import crocoddyl
+    import pandas as pd
+    import pinocchio as pin
+
+    from sdp_cli.data.collect import sample_xi
+    from sdp_cli.tasks import get_task
+    from sdp_cli.trajopt import get_solver
+
+    print(f"crocoddyl {crocoddyl.__version__}, pinocchio {pin.__version__}, {platform.machine()}, "
+          f"python {platform.python_version()}; n = {a.n} instances per task, best of {a.repeats} runs")
+    rows = []
+    for name in a.tasks.split(","):
+        task = get_task(name)
+        ours = get_solver(task, max_iter=1000)
+        print(f"{name}: dynamics check, max |x_croc - x_ours| = {check_same_dynamics(task, sample_xi(task, 0, 0)):.2e}")
+        for i in range(a.n):
+            xi = sample_xi(task, 0, i)
+            X0, U0 = task.naive_guess(xi)
+            best = None
+            for _ in range(a.repeats):
+                r = ours.solve(xi, X0, U0, gains=False)
+                best = r.solve_time if best is None else min(best, r.solve_time)
+            rows.append({"task": name, "solver": "ours (fatrop, multiple shooting)", "i": i, "ok": r.converged,
+                         "cost": task.cost(r.X, r.U, xi), "iterations": r.iterations, "time": best})
+            for kind in ("BoxFDDP", "BoxDDP"):
+                best = None
+                for _ in range(a.repeats):
+                    X, U, ok, it, wall = solve_croc(task, xi, kind)
+                    best = wall if best is None else min(best, wall)
+                viol = max(float(np.max(U - task.u_ub, initial=0)), float(np.max(task.u_lb - U, initial=0)))
+                rows.append({"task": name, "solver": f"crocoddyl {kind}", "i": i, "ok": ok and viol <= 1e-6,
+                             "cost": task.cost(X, U, xi), "iterations": it, "time": best})
+    df = pd.DataFrame(rows)
+    ours_cost = df[df.solver.str.startswith("ours")].set_index(["task", "i"]).cost
+    df["cost_vs_ours"] = [c - ours_cost[(t, i)] for t, i, c in zip(df.task, df.i, df.cost)]
+    agg = df.groupby(["task", "solver"], sort=False).agg(
+        converged=("ok", "mean"), cost_mean=("cost", "mean"), cost_median=("cost", "median"),
+        lower_cost_than_ours=("cost_vs_ours", lambda s: int((s < -1e-6).sum())),
+        iterations=("iterations", "mean"), time_ms_mean=("time", lambda s: 1e3 * s.mean()),
+        time_ms_median=("time", lambda s: 1e3 * s.median()))
+    print(agg.to_string(float_format=lambda v: f"{v:.4g}"))
+    for name in a.tasks.split(","):
+        t = agg.loc[name]
+        o = t.loc["ours (fatrop, multiple shooting)", "time_ms_median"]
+        for kind in ("BoxFDDP", "BoxDDP"):
+            c = t.loc[f"crocoddyl {kind}", "time_ms_median"]
+            print(f"{name}: median time ours / crocoddyl {kind} = {o / c:.2f} "
+                  f"({'ours faster' if o < c else 'crocoddyl faster'})")
+
+
+if __name__ == "__main__":
+    main()
