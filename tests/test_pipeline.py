@@ -76,7 +76,6 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     assert list(df.run) == ["pendulum-sdp-n10-s0", "pendulum-dp-n10-s0"]
     assert list(df.steps) == [2 * 700, 2 * 700] and list(df.samples) == [2 * 700 * 53] * 2
     assert (df.train_cpu_s > 0).all() and (df.to_s > 0).all()
-    assert float(df.train_cpu_s.iloc[0]) > float(df.train_cpu_s.iloc[1])     # an SDP step costs more than DP's
     t = totals["cpu"]
     assert t["parallel_s"] == pytest.approx(max(t["sequential_s"] / 2, float(df.total_cpu_s.max())))
     # the CLI writes nothing (params.yaml untouched) and prints the totals
