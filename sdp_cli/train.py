@@ -244,7 +244,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 
     n_params = sum(p.numel() for p in net.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
-        f"{steps_per_epoch} step(s) of {cfg.batch_size}; {cfg.epochs} epochs = {total} steps; "
+        f"{steps_per_epoch} step(s) of <= {min(cfg.batch_size, E)} (batch size {cfg.batch_size}, drawn without "
+        f"replacement); {cfg.epochs} epochs = {total} steps; "
         f"{n_params} parameters; device {dev}" +
         (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {sob_scale:.3g}" if cfg.sobolev else "") + (f"; resuming at step {step}" if prev is not None else ""))
     t0 = time.perf_counter()
