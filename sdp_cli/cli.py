@@ -378,7 +378,7 @@ def report_cmd(
     """Write the paper's tables and figures from whatever runs exist."""
     from sdp_cli.report.make import make_report
 
-    files = make_report(runs, out, experiment)
+    files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True))
     typer.echo(f"wrote {len(files)} files to {out}")
 
 

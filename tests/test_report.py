@@ -18,3 +18,40 @@ def test_top_index_lists_each_experiment_with_its_commit(tmp_path):
     assert "| [small](small/README.md) | `abc123` | 1 |" in text
     assert "stray" not in text
     assert text.index("fig2") < text.index("small")
+
+
+def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, monkeypatch):
+    """DVC leaves the outputs of removed stages in place (e.g. the evaluations of an earlier epoch
+    count): for the experiment params.yaml selects, the report uses only the evaluations it lists."""
+    import pandas as pd
+    import pytest
+    import yaml
+
+    from sdp_cli.errors import SdpError
+    from sdp_cli.report.make import make_report
+
+    monkeypatch.chdir(tmp_path)
+    row = {"task": "pendulum", "method": "sdp", "n_traj": 10, "t_a": 8, "k_rollout": 5, "train_seed": 0,
+           "test_seed": 0, "n": 20, "policy_cost_mean": 0.0, "policy_cost_median": 0.0, "success_rate": 0.5,
+           "rollout_time": 1.0, "rollout_time_per_instance": 0.05, "diverged": 0,
+           "experiment": "exp", "run": "pendulum-sdp-n10-s0", "iteration": 0, "group": 0}
+    for epochs, cost in ((300, 50.0), (700, 20.0)):
+        d = tmp_path / "runs" / "exp" / "pendulum-sdp-n10-s0" / "it0" / "eval" / f"e{epochs}-ta8"
+        d.mkdir(parents=True)
+        pd.DataFrame([{**row, "epochs": epochs, "policy_cost_mean": cost}]).to_csv(d / "eval.csv", index=False)
+    current = "runs/exp/pendulum-sdp-n10-s0/it0/eval/e700-ta8"
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(
+        {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": current}}}}))
+    logs = []
+    make_report("runs/exp", "results/exp", "exp", log=logs.append)
+    rows = pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv")
+    assert list(rows.epochs) == [700] and list(rows.policy_cost_mean) == [20.0]
+    assert logs and "ignoring 1 evaluation" in logs[0]
+    # another experiment selected: everything under --runs is reported (sdp loop folders, old runs)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({"experiment": "small"}))
+    make_report("runs/exp", "results/exp", "exp")
+    assert sorted(pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv").epochs) == [300, 700]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(
+        {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": "runs/exp/other"}}}}))
+    with pytest.raises(SdpError, match="no evaluation of the current experiment"):
+        make_report("runs/exp", "results/exp", "exp")

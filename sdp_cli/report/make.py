@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, git_revision, load_npz
+from sdp_cli.errors import SdpError
 from sdp_cli.report.runs import load_runs, mean_ci, run_revisions
 
 DIVERGED = 1e5
@@ -253,7 +254,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax.set_ylabel("instances")
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
     ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
@@ -363,10 +364,38 @@ def timing(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]
 
 
-def make_report(runs: str | Path, out: str | Path, experiment: str | None = None) -> list[Path]:
-    """Write every table and figure the available runs allow; returns the written paths."""
+def current_evaluations(experiment: str, params: Path = Path("params.yaml")) -> set[Path] | None:
+    """The evaluation folders of ``experiment`` as ``params.yaml`` lists them (DVC layout), or None
+    when params.yaml selects another experiment (or none)."""
+    import yaml
+
+    if not params.is_file():
+        return None
+    spec = yaml.safe_load(params.read_text()) or {}
+    if spec.get("experiment") != experiment:
+        return None
+    return {Path(ev["dir"]).resolve() for ev in ((spec.get("experiment_stages") or {}).get("evaluate") or {}).values()}
+
+
+def make_report(runs: str | Path, out: str | Path, experiment: str | None = None,
+                log=lambda s: None) -> list[Path]:
+    """Write every table and figure the available runs allow; returns the written paths.
+
+    For the experiment that ``params.yaml`` selects, only the evaluations its stages list are
+    reported: outputs of stages that no longer exist (e.g. before the epochs were changed),
+    which DVC leaves in place, are ignored (and counted in the log)."""
     runs, out = Path(runs), Path(out)
     df = load_runs(runs)
+    current = current_evaluations(experiment or runs.name)
+    if current is not None:
+        keep = df.source.map(lambda s: Path(s).resolve() in current)
+        if not keep.all():
+            log(f"ignoring {int((~keep).sum())} evaluation(s) in {runs} that the current experiment "
+                f"{experiment or runs.name!r} does not produce (stale outputs of removed stages)")
+        df = df[keep]
+        if df.empty:
+            raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
+                           f"run `dvc repro` first")
     written = [_save_csv(df.drop(columns=["source"]), out / "all_runs.csv")]
     from sdp_cli.report.curves import loop_costs, training_curves
 
