@@ -127,19 +127,14 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
     from diffusers.training_utils import EMAModel
 
-    from sdp_cli.data.chunks import task_with_action
     from sdp_cli.policy.checkpoint import build_net
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.tasks import get_task
-    from sdp_cli.train import make_loss
+    from sdp_cli.train import make_loss, policy_dims
 
     task = get_task(task_name)
     cfg = TrainConfig(method=method, T_h=T_h, batch_size=B, action=action)
-    if cfg.is_diffusion:
-        t = task_with_action(task, action or task.action)
-        dims = {"n_action": t.n_action, "n_obs": task.n_obs + task.nu, "n_xi": task.n_xi, "ndx": task.ndx}
-    else:
-        dims = {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+    dims = policy_dims(cfg, task, action or task.action)
     torch.manual_seed(0)
     net = build_net(cfg, dims).to(device)
     sched = None

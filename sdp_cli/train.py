@@ -74,6 +74,17 @@ def sobolev_scale_of(cfg: TrainConfig, tensors: dict) -> float:
     return balance_scale(tensors["u"], tensors["jac"])
 
 
+def policy_dims(cfg: TrainConfig, task, action: str) -> dict:
+    """Network sizes: action, observation (``(obs(x), u_prev)`` for diffusion, ``obs(x)`` for the MLPs),
+    ``xi`` and state tangent."""
+    if cfg.is_diffusion:
+        from sdp_cli.data.chunks import task_with_action
+
+        return {"n_action": task_with_action(task, action).n_action, "n_obs": task.n_obs + task.nu,
+                "n_xi": task.n_xi, "ndx": task.ndx}
+    return {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+
+
 def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen: bool = False):
     """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer;
     ``widen``: the given normalizer's ranges are extended to cover this dataset (``--init``)."""
@@ -81,12 +92,10 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen
     if cfg.is_diffusion:
         action = cfg.action or task.action
         ds = ChunkDataset(task, arrays, cfg.T_h, cfg.T_o, action, with_jacobians=with_jac)
-        n_obs = task.n_obs
-        dims = {"n_action": ds.tau0.shape[-1], "n_obs": n_obs + task.nu, "n_xi": task.n_xi, "ndx": task.ndx}
     else:
         action = "u"
         ds = PairDataset(task, arrays, with_jacobians=with_jac)
-        dims = {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+    dims = policy_dims(cfg, task, action)
     net = build_net(cfg, dims)
     norm = fit_normalizer(task, arrays, action) if normalizer is None or widen else normalizer
     if normalizer is not None and widen:

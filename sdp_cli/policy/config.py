@@ -113,6 +113,11 @@ class TrainConfig:
         return self.method in DIFFUSION_METHODS
 
     @property
+    def sobolev_weight(self) -> float:
+        """alpha_Sobolev as the losses use it (None, the task's default, is resolved by ``train``; 1 outside it)."""
+        return 1.0 if self.alpha_sobolev is None else float(self.alpha_sobolev)
+
+    @property
     def sobolev(self) -> bool:
         return self.method in SOBOLEV_METHODS
 

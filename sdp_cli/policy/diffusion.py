@@ -118,7 +118,7 @@ def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg
     dp = ((pred - tau0[:, T_o:]) ** 2).mean()
     w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
     sob = sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
-    loss = dp + (1.0 if cfg.alpha_sobolev is None else cfg.alpha_sobolev) * sob   # None: train() sets the task's
+    loss = dp + cfg.sobolev_weight * sob
     return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
 

@@ -56,5 +56,4 @@ def mlp_loss(net: MLPNet, batch: dict, cfg: TrainConfig, generator: torch.Genera
     pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator)
     reg = ((pred - u) ** 2).mean()
     sob = sobolev_scale * term.mean()
-    alpha = 1.0 if cfg.alpha_sobolev is None else cfg.alpha_sobolev   # None: train() sets the task's
-    return reg + alpha * sob, {"dp": reg.detach(), "sobolev": sob.detach()}
+    return reg + cfg.sobolev_weight * sob, {"dp": reg.detach(), "sobolev": sob.detach()}

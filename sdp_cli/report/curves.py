@@ -24,7 +24,6 @@ CURVE_FIELDS = ["step", "epoch", "loss", "dp", "sobolev", "lr"]
 
 
 def _save(df: pd.DataFrame, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
     return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
 
 
