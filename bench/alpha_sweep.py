@@ -5,7 +5,7 @@
 
 One iteration of Algorithm 1 (``sdp loop --n-algo 1``: collect ``--n-traj`` trajectories with seed
 ``1000 * seed``, train SDP for ``--epochs`` epochs, roll out on the ``--n-test`` test instances of
-test seed 0) per (alpha, path, seed), each an independent process with one torch thread; runs that
+test seed 0; refined too unless ``--no-refine``) per (alpha, path, seed), each an independent process with one torch thread; runs that
 finished are read back, so an interrupted sweep resumes where it stopped. Prints one row per run and
 a table per (alpha, path): mean over seeds of the policy's mean cost, median cost and success rate
 (the task's goal test at T, not diverged), and the seeds' spread.
@@ -30,6 +30,8 @@ def run_one(a, alpha: float, path: str, seed: int) -> dict:
                "--n-traj", str(a.n_traj), "--epochs", str(a.epochs), "--horizon", str(a.horizon),
                "--t-a", str(a.t_a), "--n-test", str(a.n_test), "--seed", str(seed), "--alpha-sobolev", str(alpha),
                "--sobolev-path", path, "--workers", "1", "--threads", "1", "--out", str(run)]
+        if a.no_refine:
+            cmd.append("--no-eval-refine")
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"alpha {alpha} {path} seed {seed}: {r.stderr[-2000:]}")
@@ -54,6 +56,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--no-refine", action="store_true",
+                    help="skip the evaluation's refine (the sweep reports the policy's own metrics)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     jobs = [(float(al), p, int(s)) for s in a.seeds.split(",") for p in a.paths.split(",")

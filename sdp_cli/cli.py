@@ -320,6 +320,7 @@ def loop_cmd(
     sobolev_path: Annotated[Optional[str], typer.Option("--sobolev-path", help="sdp: cond (default) or total (see `sdp train --help`).")] = None,
     sobolev_balance: Annotated[Optional[bool], typer.Option("--sobolev-balance/--no-sobolev-balance", help="Balance the Sobolev term (default on; see `sdp train --help`).", show_default=False)] = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
+    eval_refine: Annotated[bool, typer.Option("--eval-refine/--no-eval-refine", help="Evaluations refine the policy's rollouts (the paper's refined); off: the policy's own metrics only (sweeps).")] = True,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
 ) -> None:
@@ -337,7 +338,7 @@ def loop_cmd(
                      eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
-                     train_options=opts, single_shooting=single_shooting)
+                     train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine)
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

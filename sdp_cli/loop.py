@@ -56,6 +56,7 @@ class LoopConfig:
     scheduler: str | None = None   # address of a running Dask scheduler
     train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
     single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
+    eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
 
     def __post_init__(self):
         if self.n_algo <= 0:
@@ -105,7 +106,7 @@ class LoopConfig:
 
 # settings that may change when a loop is resumed (where it runs, how much is evaluated)
 RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler",
-                    "single_shooting")
+                    "single_shooting", "eval_refine")
 
 
 def _config_json(cfg: LoopConfig) -> str:
@@ -154,7 +155,8 @@ def _train_done(policy_dir: Path) -> bool:
 
 def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra: dict,
                        log: Callable[[str], None], last: bool = False, progress: bool = False) -> pd.DataFrame:
-    """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a."""
+    """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a
+    (without refine when ``cfg.eval_refine`` is off: the policy's own metrics only)."""
     from sdp_cli.evaluate import evaluation_row, write_evaluation
     from sdp_cli.progress import count_progress
     from sdp_cli.refine import refine
@@ -173,11 +175,11 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                                                              k_rollout=cfg.k_rollout), device=cfg.device,
                                on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
-        if not rf.exists():
+        if cfg.eval_refine and not rf.exists():
             with count_progress(f"refine {tag} (instances)", None, progress) as on_done:
                 refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
                        executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done)
-        rows.append(evaluation_row(ro, rf, extra))
+        rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
     df = pd.DataFrame(rows)
     write_evaluation(rows, eval_dir / "eval.csv")
     return df

@@ -51,6 +51,25 @@ def test_loop_resume_recomputes_nothing_and_refuses_other_settings(loop_dir):
     assert r.exit_code == 1 and "other settings" in r.output and "seed=0" in r.output
 
 
+def test_loop_without_eval_refine_reports_policy_metrics_only(tmp_path):
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["loop", "--task", "pendulum", "--method", "dp", "--n-traj", "2", "--epochs", "1",
+                            "--horizon", "8", "--t-a", "4", "--n-test", "2", "--workers", "1", "--batch-size", "8",
+                            "--no-eval-refine", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert (out / "it0" / "eval" / "rollout_ta4.npz").is_file()
+    assert not (out / "it0" / "eval" / "refined_ta4.npz").exists()
+    summary = pd.read_csv(out / "summary.csv")
+    assert summary.n.tolist() == [2] and "policy_cost_mean" in summary and "refined_cost_mean" not in summary
+    # turning refine on is a resumable change: the same folder gains the refined evaluation
+    r = runner.invoke(app, ["loop", "--task", "pendulum", "--method", "dp", "--n-traj", "2", "--epochs", "1",
+                            "--horizon", "8", "--t-a", "4", "--n-test", "2", "--workers", "1", "--batch-size", "8",
+                            "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert (out / "it0" / "eval" / "refined_ta4.npz").is_file()
+    assert "refined_cost_mean" in pd.read_csv(out / "summary.csv")
+
+
 def test_loop_executor_options_are_validated(tmp_path):
     r = _loop(tmp_path / "x", "--executor", "mpi")
     assert r.exit_code == 1 and "unknown executor 'mpi'" in r.output
