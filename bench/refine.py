@@ -32,7 +32,7 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)  # the U-Net is tiny: one thread is fastest (and the solves are serial)
-    from sdp_cli.data.artifacts import load_npz
+    from sdp_cli.data.artifacts import load_npz, load_timing
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout
     from sdp_cli.trajopt import build_count
@@ -51,6 +51,7 @@ def main() -> None:
         refine(tmp / "r.npz", tmp / "f.npz", workers=args.workers)
         rebuilt = build_count() - builds
         d, _ = load_npz(tmp / "f.npz")
+        d.update({k: np.asarray(v) for k, v in load_timing(tmp / "f.npz").items() if k.startswith("inst_")})
     tried = d["inst_pol_iterations"] >= 0  # a diverged rollout is no guess: not solved from it
     pt, bt = d["inst_pol_time"][tried], d["inst_base_time"][tried]
     pi, bi = d["inst_pol_iterations"][tried], d["inst_base_iterations"][tried]

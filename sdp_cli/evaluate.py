@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, load_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, load_npz, load_timing, save_timing, timing_path
 from sdp_cli.errors import SdpError
 
 
@@ -29,11 +29,23 @@ def _mean(a) -> float:
     return float(a.mean()) if a.size else float("nan")
 
 
+def is_timing_column(name: str) -> bool:
+    """Columns holding clock readings (``rollout_time``, ``*_solve_time_mean``, ...)."""
+    return "_time" in name
+
+
+def _timed(arrays: dict, timing: dict, key: str, n: int) -> np.ndarray:
+    """A per-instance time: from the sidecar (or, for older artifacts, the arrays); NaN if unknown."""
+    v = arrays.get(key, timing.get(key))
+    v = np.asarray(v if v is not None else np.full(n, np.nan), dtype=float)
+    return v if v.shape == (n,) else np.full(n, np.nan)
+
+
 def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
     r, rmeta = load_npz(rollouts, kind="rollout")
-    missing = [k for k in ("cost", "reached", "diverged", "max_violation", "rollout_time") if k not in r]
+    missing = [k for k in ("cost", "reached", "diverged", "max_violation") if k not in r]
     if missing or not isinstance(rmeta.get("config"), dict):
         raise SdpError(f"corrupt rollout artifact {rollouts}: missing {', '.join(missing) or 'config'}")
     pcfg = rmeta.get("policy_config", {}) or {}
@@ -48,13 +60,13 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "success_rate": float(np.mean(r["reached"])),
         "diverged": int(np.sum(r["diverged"])),
         "max_violation": float(np.max(np.where(np.isfinite(r["max_violation"]), r["max_violation"], np.inf))),
-        "rollout_time": float(r["rollout_time"]),
-        "rollout_time_per_instance": float(r["rollout_time"]) / len(cost),
+        "rollout_time": float(r.get("rollout_time", load_timing(rollouts).get("rollout_time", np.nan))),
     }
+    row["rollout_time_per_instance"] = row["rollout_time"] / len(cost)
     if refined is not None:
         d, dmeta = load_npz(refined, kind="dataset")
         inst = ("inst_pol_converged", "inst_base_converged", "inst_pol_iterations", "inst_base_iterations",
-                "inst_pol_cost", "inst_base_cost", "inst_pol_time", "inst_base_time")
+                "inst_pol_cost", "inst_base_cost")
         if "inst_winner" in d and any(k not in d for k in inst):
             raise SdpError(f"corrupt refine artifact {refined}: missing per-instance records")
         if "inst_winner" not in d:
@@ -65,6 +77,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
                            f"not {rollouts}")
         if len(d["inst_winner"]) != len(cost):
             raise SdpError(f"{refined} refines {len(d['inst_winner'])} instances, {rollouts} has {len(cost)}")
+        dt, m = load_timing(refined), len(cost)
         pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)
         tried = d["inst_pol_iterations"] >= 0
         best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
@@ -76,7 +89,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             # over the instances solved from the policy guess (a diverged rollout is no guess)
             "refined_solved_rate": float(np.mean(tried)),
             "refined_iterations_mean": _mean(np.where(tried, d["inst_pol_iterations"], np.nan)),
-            "refined_solve_time_mean": _mean(np.where(tried, d["inst_pol_time"], np.nan)),
+            "refined_solve_time_mean": _mean(np.where(tried, _timed(d, dt, "inst_pol_time", m), np.nan)),
             # ArgminCost(refined, TO alone): <= TO alone by construction, not evidence of anything alone
             "argmin_cost_mean": _mean(best),
             "argmin_converged_rate": float(np.mean(d["inst_winner"] >= 0)),
@@ -84,7 +97,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             "to_alone_cost_mean": _mean(np.where(base_ok, d["inst_base_cost"], np.nan)),
             "to_alone_converged_rate": float(np.mean(base_ok)) if np.any(d["inst_base_iterations"] >= 0) else float("nan"),
             "to_alone_iterations_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_iterations"], np.nan)),
-            "to_alone_solve_time_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_time"], np.nan)),
+            "to_alone_solve_time_mean": _mean(np.where(d["inst_base_iterations"] >= 0, _timed(d, dt, "inst_base_time", m), np.nan)),
         })
         if "inst_ss_base_converged" in d:   # the single-shooting baseline (sdp refine --single-shooting)
             for g, name in (("base", "ss_to_alone"), ("pol", "ss_refined")):
@@ -93,21 +106,37 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
                     f"{name}_cost_mean": _mean(np.where(ok, d[f"inst_ss_{g}_cost"], np.nan)),
                     f"{name}_converged_rate": float(np.mean(ok)) if tried.any() else float("nan"),
                     f"{name}_iterations_mean": _mean(np.where(tried, d[f"inst_ss_{g}_iterations"], np.nan)),
-                    f"{name}_solve_time_mean": _mean(np.where(tried, d[f"inst_ss_{g}_time"], np.nan))})
+                    f"{name}_solve_time_mean": _mean(np.where(tried, _timed(d, dt, f"inst_ss_{g}_time", m), np.nan))})
     row.update(extra or {})
     return row
 
 
 def write_metrics(row: dict, out: str | os.PathLike) -> Path:
-    """The row as a JSON object (DVC metrics file); non-finite numbers become null."""
+    """The row without its timing columns as a JSON object (DVC metrics file); non-finite
+    numbers become null."""
     import json
     import math
 
-    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+    clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()
+             if not is_timing_column(k)}
     return atomic_write_bytes(out, lambda f: f.write(json.dumps(clean, indent=2, default=str).encode()))
 
 
 def write_evaluation(rows: list[dict], out: str | os.PathLike) -> Path:
-    """Write rows as CSV atomically."""
+    """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar."""
     df = pd.DataFrame(rows)
-    return atomic_write_bytes(out, lambda f: f.write(df.to_csv(index=False).encode()))
+    timed = [c for c in df.columns if is_timing_column(c)]
+    path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))
+    save_timing(out, {"rows": df[timed].astype(float).to_dict("records")})
+    return path
+
+
+def read_evaluation(path: str | os.PathLike) -> pd.DataFrame:
+    """An ``eval.csv`` joined with the timing columns of its sidecar (when it has one record
+    per row; otherwise without them)."""
+    df = pd.read_csv(path)
+    timed = load_timing(path).get("rows")
+    if isinstance(timed, list) and len(timed) == len(df) and timing_path(path).is_file():
+        t = pd.DataFrame(timed, index=df.index)
+        df = pd.concat([df, t[[c for c in t.columns if c not in df]]], axis=1)
+    return df

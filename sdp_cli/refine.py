@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz
+from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
 from sdp_cli.data.collect import RESULT_KEYS
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
@@ -204,11 +204,13 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         mean_pol_time=float(np.mean(out_arrays["inst_pol_time"])),
         mean_base_time=float(np.mean(out_arrays["inst_base_time"])) if baseline else float("nan"))
     dims = task.dims()
+    out_arrays, timing = split_timing(out_arrays)   # clock readings go to the timing sidecar
+    meta_stats, stats_timing = split_timing(stats.__dict__)
     path = save_npz(out, out_arrays, kind="dataset",
                     config={"rollouts": str(rollouts), "rollouts_sha256": file_sha256(rollouts),
                             "max_iter": max_iter, "baseline": baseline, "single_shooting": single_shooting,
                             "workers": described.get("workers"),
                             "executor": described, "rollout_config": meta.get("config", {})},
                     task=task_name, task_params=task.params(), task_options=task_options, dims=dims,
-                    source="refine", stats=stats.__dict__)
+                    source="refine", stats=meta_stats, timing={**timing, **stats_timing})
     return path, stats

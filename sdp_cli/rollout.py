@@ -161,12 +161,13 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
         traj = rollout_policy(policy, xis, config, on_step=on_step)
     wall = time.perf_counter() - t0
     ev = evaluate_rollouts(task, traj["X"], traj["U"], xis)
-    arrays = {**traj, **ev, "xi": xis, "rollout_time": np.asarray(wall)}
+    arrays = {**traj, **ev, "xi": xis}
     ck_cfg = policy.config.to_dict() if hasattr(policy.config, "to_dict") else {}
     path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
                     device=str(policy.device), task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
-                    policy_epoch=policy.checkpoint_epoch, policy_dataset=policy.dataset_info)
+                    policy_epoch=policy.checkpoint_epoch, policy_dataset=policy.dataset_info,
+                    timing={"rollout_time": wall})
     summary = {"method": policy.method, "n": config.n, "mean_cost": float(np.mean(ev["cost"])),
                "median_cost": float(np.median(ev["cost"])), "diverged": int(ev["diverged"].sum()),
                "reached": int(ev["reached"].sum()), "rollout_time": wall}

@@ -7,7 +7,9 @@
   ``EMAModel`` with warm-up, power 0.75, as diffusion policy), gradient-norm clipping.
 - Run folder ``--out``: ``checkpoint.pt`` (latest; rewritten atomically every
   ``checkpoint_every_s`` seconds, at the end and on Ctrl-C), ``epoch_<E>.pt`` for each
-  ``--save-at`` epoch, ``metrics.csv`` (step, epoch, loss, dp, sobolev, lr, grad_norm, wall_time).
+  ``--save-at`` epoch, ``metrics.csv`` (step, epoch, loss, dp, sobolev, lr, grad_norm). Clock
+  readings stay out of the folder (a DVC output: same seed, same bytes): the training wall time
+  is in the sidecar ``<out>.timing.json`` next to it (:func:`sdp_cli.data.artifacts.save_timing`).
 - ``resume=True`` continues from ``checkpoint.pt`` bit-for-bit (optimizer, schedule, EMA
   and RNG state are restored). ``init`` starts from another checkpoint's weights and EMA
   (the alternating loop's warm start); its architecture settings win, and its normalizer is
@@ -29,7 +31,7 @@ import torch
 
 from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
-from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir
+from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, save_timing
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
                                        save_checkpoint)
@@ -38,7 +40,7 @@ from sdp_cli.policy.config import TrainConfig
 ARCH_FIELDS = ("T_h", "T_o", "K", "down_dims", "kernel_size", "n_groups", "step_embed_dim", "clip_sample",
                "action", "mlp_hidden")
 METRICS_EVERY_S = 5.0   # metrics.csv is appended to this often (and rewritten with each checkpoint)
-METRIC_FIELDS = ("step", "epoch", "loss", "dp", "sobolev", "lr", "grad_norm", "wall_time")
+METRIC_FIELDS = ("step", "epoch", "loss", "dp", "sobolev", "lr", "grad_norm")
 
 
 def resolve_device(device: str) -> torch.device:
@@ -111,7 +113,7 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen
 
 def _metrics_bytes(rows: list[dict]) -> bytes:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=METRIC_FIELDS)
+    w = csv.DictWriter(buf, fieldnames=METRIC_FIELDS, extrasaction="ignore")   # (older files: wall_time)
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue().encode()
@@ -209,7 +211,8 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         except RuntimeError:
             raise SdpError(f"cannot resume {ck_path} on {dev}: it was trained on another device type "
                            "(its random state does not carry over); resume with the same --device") from None
-        step, wall0 = int(prev["step"]), float(ts["wall_time"])
+        step = int(prev["step"])
+        wall0 = float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
         rows = _read_metrics(out / "metrics.csv", step)
 
     scheduler = None
@@ -236,9 +239,10 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                    "train_state": None}
         if with_state:
             payload["train_state"] = {"optimizer": opt.state_dict(), "lr_scheduler": sched.state_dict(),
-                                      "ema": ema.state_dict(), "generator": gen.get_state(),
-                                      "wall_time": wall0 + (time.perf_counter() - t0)}
+                                      "ema": ema.state_dict(), "generator": gen.get_state()}
         save_checkpoint(path, payload)
+        if with_state:
+            save_timing(out, {"wall_time": wall0 + (time.perf_counter() - t0), "step": step, "device": str(dev)})
         atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
         flushed[0] = len(rows)
 
@@ -248,7 +252,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
         else:
             with open(out / "metrics.csv", "a", newline="") as f:
-                csv.DictWriter(f, fieldnames=METRIC_FIELDS).writerows(rows[flushed[0]:])
+                csv.DictWriter(f, fieldnames=METRIC_FIELDS, extrasaction="ignore").writerows(rows[flushed[0]:])
         flushed[0] = len(rows)
 
     n_params = sum(p.numel() for p in net.parameters())
@@ -287,8 +291,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                 step += 1
                 rows.append({"step": step, "epoch": step // steps_per_epoch, "loss": f"{loss.item():.6g}",
                              "dp": f"{parts['dp'].item():.6g}", "sobolev": f"{parts['sobolev'].item():.6g}",
-                             "lr": f"{sched.get_last_lr()[0]:.6g}", "grad_norm": f"{float(gnorm):.4g}",
-                             "wall_time": f"{wall0 + time.perf_counter() - t0:.3f}"})
+                             "lr": f"{sched.get_last_lr()[0]:.6g}", "grad_norm": f"{float(gnorm):.4g}"})
                 if step % 10 == 0 or step == total:
                     bar.update(task_id, completed=step, info=f"loss {rows[-1]['loss']} dp {rows[-1]['dp']} "
                                                              f"sob {rows[-1]['sobolev']} lr {rows[-1]['lr']}")

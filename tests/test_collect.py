@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
-from sdp_cli.data.artifacts import load_npz
+from sdp_cli.data.artifacts import load_npz, load_timing
 from sdp_cli.data.collect import CollectConfig, _next_indices, collect, kept_indices, sample_xi
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
@@ -61,7 +61,7 @@ def test_collect_cli_writes_a_complete_dataset(tmp_path):
     shapes = {"X": (N, T + 1, task.nx), "U": (N, T, task.nu), "K": (N, T, task.nu, task.ndx),
               "A": (N, T, task.ndx, task.ndx), "B": (N, T, task.ndx, task.nu),
               "Phi": (N, T, task.ndx, task.ndx), "xi": (N, task.n_xi), "cost": (N,), "iterations": (N,),
-              "solve_time": (N,), "converged": (N,), "index": (N,), "max_violation": (N,)}
+              "converged": (N,), "index": (N,), "max_violation": (N,)}
     for k, s in shapes.items():
         assert arrays[k].shape == s, k
     assert arrays["converged"].all()
@@ -76,6 +76,11 @@ def test_collect_cli_writes_a_complete_dataset(tmp_path):
     assert meta["provenance"]["versions"]["casadi"]
     assert "git_rev" in meta["provenance"]
     assert not (tmp_path / "p.npz.partial").exists()
+    # clock readings live in the timing sidecar, never in the artifact (same seed, same bytes)
+    assert not any(k.endswith("_time") for k in arrays) and "created" not in meta
+    timing = load_timing(out)
+    assert (tmp_path / "p.timing.json").is_file() and len(timing["solve_time"]) == N
+    assert all(t > 0 for t in timing["solve_time"]) and timing["wall_time"] >= sum(timing["solve_time"])
 
 
 def test_collect_same_result_for_any_number_of_workers(tmp_path):

@@ -1,5 +1,6 @@
 """Same seed, same settings, same artifacts: every array equal, and the metadata equal except the
-creation time, the provenance (git revision, runtime) and timing fields."""
+provenance (git revision, runtime); re-run at the same paths, the same bytes (what DVC hashes),
+with the clock readings in the timing sidecars."""
 
 from __future__ import annotations
 
@@ -13,14 +14,13 @@ from sdp_cli.policy.checkpoint import load_checkpoint
 from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
 
 runner = CliRunner()
-VOLATILE = {"created", "provenance"}
-TIMING_ARRAYS = {"rollout_time"}
+VOLATILE = {"provenance"}
 
 
 def _same_artifact(a, b):
     (xa, ma), (xb, mb) = load_npz(a), load_npz(b)
     assert set(xa) == set(xb)
-    for k in set(xa) - TIMING_ARRAYS:
+    for k in set(xa):
         np.testing.assert_array_equal(xa[k], xb[k], err_msg=k)
     def strip(m):   # (the two runs live in different folders: the policy path differs by design)
         m = {k: v for k, v in m.items() if k not in VOLATILE}
@@ -58,7 +58,45 @@ def test_collect_twice_gives_the_same_dataset(tmp_path):
                                   "--out", str(tmp_path / f"{r}.npz")])
         assert res.exit_code == 0, res.output
     xa, _ = load_npz(tmp_path / "a.npz")
-    xa.pop("solve_time")
     xb, _ = load_npz(tmp_path / "b.npz")
     for k in xa:
         np.testing.assert_array_equal(xa[k], xb[k], err_msg=k)
+
+
+def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
+    """What a forced `dvc repro` does: delete the outputs, run the same commands again. Every output
+    (dataset, checkpoint, metrics.csv, rollouts, refined, eval.csv, metrics JSON) has the same SHA-256;
+    only the timing sidecars (not DVC outputs) differ."""
+    import shutil
+
+    from sdp_cli.data.artifacts import file_sha256, load_timing
+
+    d = tmp_path / "run"
+    cmds = [["collect", "--task", "pendulum", "--n-traj", "2", "--seed", "3", "--workers", "1",
+             "--out", str(d / "data.npz")],
+            ["train", "--data", str(d / "data.npz"), "--method", "sdp", "--epochs", "2", "--horizon", "8",
+             "--down-dims", "8,16", "--batch-size", "16", "--seed", "1", "--device", "cpu", "--no-progress",
+             "--out", str(d / "policy")],
+            ["rollout", "--policy", str(d / "policy"), "--n", "2", "--seed", "0", "--t-a", "4",
+             "--out", str(d / "rollout.npz")],
+            ["refine", "--rollouts", str(d / "rollout.npz"), "--workers", "1", "--out", str(d / "refined.npz")],
+            ["evaluate", "--rollouts", str(d / "rollout.npz"), "--refined", str(d / "refined.npz"),
+             "--out", str(d / "eval.csv"), "--metrics", str(d / "metrics.json")]]
+    outs = ["data.npz", "policy/checkpoint.pt", "policy/metrics.csv", "rollout.npz", "refined.npz", "eval.csv",
+            "metrics.json"]
+    hashes = []
+    for _ in range(2):
+        shutil.rmtree(d, ignore_errors=True)
+        for c in cmds:
+            r = runner.invoke(app, c)
+            assert r.exit_code == 0, (c[0], r.output)
+        hashes.append({o: file_sha256(d / o) for o in outs})
+    assert hashes[0] == hashes[1]
+    assert load_timing(d / "data.npz")["wall_time"] > 0 and load_timing(d / "policy")["wall_time"] > 0
+    assert load_timing(d / "rollout.npz")["rollout_time"] > 0
+    assert len(load_timing(d / "refined.npz")["inst_pol_time"]) == 2
+    from sdp_cli.evaluate import read_evaluation
+
+    row = read_evaluation(d / "eval.csv").iloc[0]
+    assert row.rollout_time > 0 and row.to_alone_solve_time_mean > 0
+    assert "rollout_time" not in open(d / "eval.csv").readline()

@@ -2,9 +2,14 @@
 
 Every artifact sdp writes is a NumPy ``.npz`` archive (open it with ``np.load`` without
 sdp). Besides its arrays it holds ``__meta__``: a 0-d string array with a JSON object
-that has at least ``kind`` (e.g. ``"dataset"``), ``format_version``, ``created``,
+that has at least ``kind`` (e.g. ``"dataset"``), ``format_version``,
 ``provenance`` (package versions, git revision, python, platform) and ``config``.
 The array layout of each kind is documented in ``docs/artifacts.md``.
+
+Same inputs, same bytes: an artifact holds no clock readings, so re-running a DVC stage with
+nothing changed leaves ``dvc.lock`` as it was. What was timed (solve, rollout, training and
+wall times) and when the file was written go to a sidecar ``<stem>.timing.json`` next to it
+(:func:`save_timing` / :func:`load_timing`), which is not a DVC output.
 
 Writes are atomic (temporary file in the same folder, fsync, ``os.replace``), so a
 killed process never leaves a half-written artifact.
@@ -172,14 +177,57 @@ def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
 
 
 def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
-             config: dict[str, Any] | None = None, **extra_meta: Any) -> Path:
-    """Atomically write ``arrays`` plus a metadata record of ``kind`` to ``path``."""
+             config: dict[str, Any] | None = None, timing: dict[str, Any] | None = None,
+             **extra_meta: Any) -> Path:
+    """Atomically write ``arrays`` plus a metadata record of ``kind`` to ``path``; ``timing``
+    (measured times, if any) goes to the sidecar :func:`timing_path` instead."""
     meta = {"kind": kind, "format_version": FORMAT_VERSION,
-            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "provenance": runtime_provenance(), "config": config or {}, **extra_meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     payload["__meta__"] = np.array(json.dumps(meta, default=_json_default))
-    return atomic_write_bytes(path, lambda f: np.savez(f, **payload))
+    out = atomic_write_bytes(path, lambda f: _write_npz(f, payload))
+    if timing is not None:
+        save_timing(path, timing)
+    return out
+
+
+def _write_npz(f, payload: dict[str, np.ndarray]) -> None:
+    """``np.savez`` with a fixed entry timestamp (the zip format records one per entry)."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
+        for k, v in payload.items():
+            info = zipfile.ZipInfo(f"{k}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with z.open(info, "w", force_zip64=True) as entry:
+                np.lib.format.write_array(entry, v, allow_pickle=False)
+
+
+def split_timing(record: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(rest, timing)``: the entries named ``*_time`` (clock readings) and the others."""
+    timing = {k: v for k, v in record.items() if k.endswith("_time")}
+    return {k: v for k, v in record.items() if k not in timing}, timing
+
+
+def timing_path(path: str | os.PathLike) -> Path:
+    """The timing sidecar of an artifact: ``data.npz`` -> ``data.timing.json``, a run folder
+    ``policy`` -> ``policy.timing.json`` (next to it, outside a folder that is a DVC output)."""
+    p = Path(path)
+    return p.with_name((p.stem if p.suffix else p.name) + ".timing.json")
+
+
+def save_timing(path: str | os.PathLike, timing: dict[str, Any]) -> Path:
+    """Write the timing sidecar of ``path`` (adds ``created``, the UTC time of writing)."""
+    rec = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **timing}
+    data = json.dumps(rec, default=_json_default, indent=1).encode()
+    return atomic_write_bytes(timing_path(path), lambda f: f.write(data))
+
+
+def load_timing(path: str | os.PathLike) -> dict[str, Any]:
+    """The timing sidecar of ``path``; empty when it is missing or unreadable (timings are
+    informative, never needed to load the artifact itself)."""
+    try:
+        rec = json.loads(timing_path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return rec if isinstance(rec, dict) else {}
 
 
 def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

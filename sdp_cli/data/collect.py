@@ -24,7 +24,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz, split_timing
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
 from sdp_cli.tasks import Task, get_task
@@ -350,11 +350,13 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index") + extra}
     arrays["converged"] = arrays["converged"].astype(bool)
     dims = task.dims()
+    arrays, timing = split_timing(arrays)   # clock readings go to the timing sidecar
     path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": described.get("workers"),
                                                        "executor": described},
                     task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,
                     stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
-                           "convergence_rate": stats.convergence_rate,
-                           "mean_solve_time": stats.mean_solve_time, "wall_time": stats.wall_time})
+                           "convergence_rate": stats.convergence_rate},
+                    timing={**timing, "mean_solve_time": stats.mean_solve_time, "attempts": stats.attempts,
+                            "wall_time": stats.wall_time})
     store.remove()
     return path, stats

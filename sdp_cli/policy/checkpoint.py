@@ -1,18 +1,18 @@
 """Policy checkpoints: one ``torch.save`` file, written atomically.
 
 Content (a dict of plain types and tensors, loadable with ``weights_only=True``):
-``format``, ``format_version``, ``created``, ``method``, ``config`` (full :class:`TrainConfig`),
+``format``, ``format_version``, ``method``, ``config`` (full :class:`TrainConfig`),
 ``dims`` (n_action, n_obs, n_xi, ndx), ``action``, ``task``, ``task_options``, ``task_params``,
 ``dataset`` (path, sha256 fingerprint, n_traj, T), ``provenance`` (versions, git revision, CPU model,
 torch thread count, CUDA device), ``device``,
 ``epoch``, ``step``, ``total_steps``, ``finished``, ``model`` (weights + normalizer buffers),
 ``ema_model`` (same keys, EMA weights) and ``train_state`` (optimizer, LR schedule, EMA
-internals, RNG state, metrics rows) for ``--resume``.
+internals, RNG state) for ``--resume``. No clock readings (same seed, same bytes): the
+training wall time is in the run folder's timing sidecar (see :mod:`sdp_cli.train`).
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import io
 from pathlib import Path
 
@@ -28,10 +28,8 @@ CHECKPOINT_NAME = "checkpoint.pt"
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> Path:
-    """Atomically write ``payload`` (adds format, version, created, provenance)."""
-    payload = {"format": FORMAT, "format_version": FORMAT_VERSION,
-               "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-               "provenance": runtime_provenance(), **payload}
+    """Atomically write ``payload`` (adds format, version, provenance)."""
+    payload = {"format": FORMAT, "format_version": FORMAT_VERSION, "provenance": runtime_provenance(), **payload}
     buf = io.BytesIO()
     torch.save(payload, buf)
     return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))

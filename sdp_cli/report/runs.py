@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.errors import SdpError
+from sdp_cli.evaluate import read_evaluation
 
 #: name of an iteration folder of a loop run, ``it<k>``
 ITERATION_DIR = re.compile(r"^it(\d+)$")
@@ -37,7 +38,7 @@ def load_runs(root: str | Path) -> pd.DataFrame:
     frames = []
     for csv in sorted(root.rglob("eval.csv")):
         try:
-            df = pd.read_csv(csv)
+            df = read_evaluation(csv)
         except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
             raise SdpError(f"corrupt evaluation file {csv}: {e}") from None
         run, it = _run_and_iteration(csv, root)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import load_npz
+from sdp_cli.data.artifacts import load_timing
 from sdp_cli.report.runs import ITERATION_DIR
 
 
@@ -36,18 +36,20 @@ def _collect_seconds(it_dir: Path) -> tuple[float, float]:
     data = it_dir / "data.npz"
     if not data.is_file():  # DVC layout: the naive-guess dataset of iteration 0 is shared elsewhere
         return float("nan"), float("nan")
-    _, meta = load_npz(data, kind="dataset")
-    stats = meta.get("stats") or {}
-    return (float(stats.get("attempts", np.nan)) * float(stats.get("mean_solve_time", np.nan)),
-            float(stats.get("wall_time", np.nan)))
+    t = load_timing(data)
+    return (float(t.get("attempts", np.nan)) * float(t.get("mean_solve_time", np.nan)),
+            float(t.get("wall_time", np.nan)))
 
 
 def _train(it_dir: Path) -> tuple[float, float]:
+    """(training steps, wall seconds): the steps from ``metrics.csv``, the time from the run
+    folder's timing sidecar (``policy.timing.json``)."""
     m = it_dir / "policy" / "metrics.csv"
     if not m.is_file():
         return float("nan"), float("nan")
     df = pd.read_csv(m)
-    return (float(df.step.iloc[-1]), float(df.wall_time.iloc[-1])) if len(df) else (float("nan"), float("nan"))
+    steps = float(df.step.iloc[-1]) if len(df) else float("nan")
+    return steps, float(load_timing(it_dir / "policy").get("wall_time", np.nan))
 
 
 def _col(g: pd.DataFrame, name: str, default: float) -> pd.Series:
