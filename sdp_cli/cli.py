@@ -320,6 +320,7 @@ def loop_cmd(
     sobolev_path: Annotated[Optional[str], typer.Option("--sobolev-path", help="sdp: cond (default) or total (see `sdp train --help`).")] = None,
     sobolev_balance: Annotated[Optional[bool], typer.Option("--sobolev-balance/--no-sobolev-balance", help="Balance the Sobolev term (default on; see `sdp train --help`).", show_default=False)] = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
+    save_at: Annotated[Optional[str], typer.Option("--save-at", help="Extra epoch counts whose checkpoints are evaluated too, e.g. 1000 (Fig. 1).")] = None,
     eval_refine: Annotated[bool, typer.Option("--eval-refine/--no-eval-refine", help="Evaluations refine the policy's rollouts (the paper's refined); off: the policy's own metrics only (sweeps).")] = True,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
@@ -338,7 +339,8 @@ def loop_cmd(
                      eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
-                     train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine)
+                     train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine,
+                     save_at=_int_list(save_at, "--save-at"))
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]
@@ -352,16 +354,33 @@ def pipeline_cmd(
         sorted(p.stem for p in Path("pipelines").glob("*.yaml"))) + " here).")],
     params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
     estimate: Annotated[bool, typer.Option("--estimate", help="Print each run's training steps, samples and estimated hours (training calibrated here in <= 60 s), and the totals; writes nothing.")] = False,
-    workers: Annotated[int, typer.Option(help="--estimate: parallel worker processes for the total.")] = 2,
+    run: Annotated[bool, typer.Option("--run", help="Run every run of the experiment now (each an `sdp loop` in OUT/<run>/), in parallel on the executor; resumable. This is what the DVC stage `group` runs.")] = False,
+    out: Annotated[Optional[Path], typer.Option(help="--run: folder of the runs (default runs/<experiment>).")] = None,
+    only: Annotated[Optional[str], typer.Option(help="--run: comma-separated run names to run (default all).")] = None,
+    workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
+    executor: Annotated[Optional[str], typer.Option(help="--run: local (process pool; default $SDP_EXECUTOR, else local) or dask.")] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help="--run: address of a running Dask scheduler (default $SDP_SCHEDULER).")] = None,
 ) -> None:
     """Select the experiment that `dvc repro` runs (expands pipelines/<name>.yaml into params.yaml)."""
     from sdp_cli.pipeline import select_experiment
 
+    if estimate and run:
+        raise SdpError("--estimate and --run exclude each other")
     if estimate:
         from sdp_cli.estimate import estimate as run_estimate, format_estimate
 
-        df, totals = run_estimate(experiment, workers, log=lambda s: typer.echo(s, err=True))
+        df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True))
         typer.echo(format_estimate(experiment, df, totals))
+        return
+    if run:
+        from sdp_cli.runner import run_group
+
+        names = [s for s in (only or "").split(",") if s] or None
+        summary = run_group(experiment, out or Path("runs") / experiment, executor=executor, workers=workers,
+                            scheduler=scheduler, only=names, log=lambda s: typer.echo(s, err=True))
+        cols = [c for c in ("run", "iteration", "epochs", "t_a", "policy_cost_mean", "success_rate",
+                            "refined_cost_mean", "to_alone_cost_mean") if c in summary]
+        typer.echo(summary[cols].to_string(index=False) if len(summary) else "no runs")
         return
 
     counts = select_experiment(experiment, params)

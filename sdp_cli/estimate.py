@@ -198,7 +198,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
-    stages = expand(name, load_experiment(name, root))
+    stages = expand(name, load_experiment(name, root), per_step=True)
     train = training_stages(stages)
     if not train:
         raise SdpError(f"experiment {name!r} has no training stage")

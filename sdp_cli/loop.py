@@ -9,7 +9,9 @@ For iteration ``k = 0 .. n_algo-1`` in ``OUT/it<k>/``:
 3. ``policy/``    — ``sdp train`` for ``epochs`` epochs, from the previous iteration's
    weights, EMA and normalizer (``--init``) when ``k > 0``;
 4. ``eval/``      — ``sdp rollout`` on the fixed test set (``n_test`` instances of the test
-   seed), ``sdp refine`` of those rollouts (policy guess vs naive guess) and ``sdp evaluate``.
+   seed), ``sdp refine`` of those rollouts (policy guess vs naive guess) and ``sdp evaluate``,
+   for the final policy (``rollout_ta<T_a>.npz``) and for the checkpoints kept at the
+   ``save_at`` epochs (``rollout_e<E>-ta<T_a>.npz``; Fig. 1's two budgets from one training).
 
 Every stage writes its artifact atomically, so "the artifact exists" means "the stage is
 done": re-running the same command after a kill continues from the last finished stage
@@ -57,6 +59,7 @@ class LoopConfig:
     train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
     single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
     eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
+    save_at: tuple = ()            # extra epoch counts (< epochs) whose checkpoints are evaluated too (Fig. 1)
 
     def __post_init__(self):
         if self.n_algo <= 0:
@@ -67,6 +70,8 @@ class LoopConfig:
             raise SdpError(f"epochs must be > 0, got {self.epochs}")
         if self.n_test <= 0:
             raise SdpError(f"n_test must be > 0, got {self.n_test}")
+        if any(not 0 < int(e) < self.epochs for e in self.save_at):
+            raise SdpError(f"save_at epochs must be in (0, epochs = {self.epochs}), got {list(self.save_at)}")
         from sdp_cli.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)
@@ -166,12 +171,14 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     t_as = list(cfg.eval_t_a or (cfg.t_a,))
     if last:
         t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
-    for t_a in t_as:
-        tag = f"ta{t_a}" if t_a is not None else "ta-default"
+    # the final policy, then the checkpoints kept at the save_at epochs (Fig. 1's two budgets)
+    ckpts = [(policy_dir, "")] + [(policy_dir / f"epoch_{e}.pt", f"e{e}-") for e in sorted(cfg.save_at)]
+    for (ckpt, prefix), t_a in ((c, t) for c in ckpts for t in t_as):
+        tag = prefix + (f"ta{t_a}" if t_a is not None else "ta-default")
         ro, rf = eval_dir / f"rollout_{tag}.npz", eval_dir / f"refined_{tag}.npz"
         if not ro.exists():
             with count_progress(f"rollout {tag} (time steps)", None, progress) as on_step:
-                _, s = rollout(policy_dir, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
+                _, s = rollout(ckpt, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
                                                              k_rollout=cfg.k_rollout), device=cfg.device,
                                on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
@@ -224,7 +231,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
         if not _train_done(policy_dir):
             log(f"[it{k}] train {cfg.method} for {cfg.epochs} epochs" + (" (init from previous)" if prev_policy else ""))
             tcfg = TrainConfig.from_dict({**TrainConfig().to_dict(), "method": cfg.method, "epochs": cfg.epochs,
-                                          "seed": cfg.seed, "T_h": cfg.horizon, **cfg.train_options})
+                                          "seed": cfg.seed, "T_h": cfg.horizon, "save_at": list(cfg.save_at),
+                                          **cfg.train_options})
             train(train_data, policy_dir, tcfg, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,
                   log=lambda s: None)

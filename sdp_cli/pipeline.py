@@ -24,6 +24,11 @@ An experiment file lists *groups*; each group is a sweep::
 ``evaluate`` (one entry per checkpoint x T_a). ``sdp pipeline NAME`` writes them into
 ``params.yaml`` under ``experiment_stages`` and sets ``experiment: NAME``; ``dvc repro`` then
 runs exactly that experiment.
+
+``runner: group`` at the top of an experiment file selects the other way to run it: one DVC
+stage ``group`` that runs every run (an ``sdp loop``) in parallel through the executor of
+``SDP_EXECUTOR``/``SDP_WORKERS``/``SDP_SCHEDULER`` (:mod:`sdp_cli.runner`), with a persistent
+output so that an interrupted ``dvc repro`` resumes the runs instead of deleting them.
 """
 
 from __future__ import annotations
@@ -36,6 +41,9 @@ import yaml
 from sdp_cli.errors import SdpError
 
 PIPELINES_DIR = Path("pipelines")
+#: how `dvc repro` runs an experiment: one DVC stage per step (``stages``, the default) or one
+#: stage running every run through the executor (``group``, parallel; :mod:`sdp_cli.runner`)
+RUNNERS = ("stages", "group")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
                   "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50, "test_seed": 0,
                   "max_iter": 1000, "single_shooting": False, "train": {}}
@@ -71,16 +79,36 @@ def _train_opts(group: dict) -> str:
     return " ".join(opts)
 
 
-def expand(name: str, spec: dict) -> dict:
-    """Stage dictionaries for ``dvc.yaml`` (see module docstring)."""
-    out = {"collect_first": {}, "collect_next": {}, "train_first": {}, "train_next": {}, "evaluate": {}}
+def check_group(name: str, gi: int, raw: dict) -> dict:
+    """Group ``gi`` of experiment ``name`` with the defaults filled in (``SdpError`` on unknown keys)."""
+    if not isinstance(raw, dict):
+        raise SdpError(f"experiment {name!r}, group {gi}: expected a mapping, got {raw!r}")
+    unknown = set(raw) - set(GROUP_DEFAULTS) - {"task"}
+    if unknown:
+        raise SdpError(f"experiment {name!r}, group {gi}: unknown keys {sorted(unknown)}")
+    if "task" not in raw:
+        raise SdpError(f"experiment {name!r}, group {gi}: 'task' is required")
+    return {**GROUP_DEFAULTS, **raw}
+
+
+def expand(name: str, spec: dict, per_step: bool = False) -> dict:
+    """Stage dictionaries for ``dvc.yaml`` (see module docstring). With ``runner: group`` in the
+    experiment file, one ``group`` entry (every run through ``sdp pipeline NAME --run``, see
+    :mod:`sdp_cli.runner`) and empty per-step lists, unless ``per_step`` (the per-step lists of
+    any experiment: what ``--estimate`` sizes)."""
+    out = {"collect_first": {}, "collect_next": {}, "train_first": {}, "train_next": {}, "evaluate": {},
+           "group": {}}
+    runner = spec.get("runner", "stages")
+    if runner not in RUNNERS:
+        raise SdpError(f"experiment {name!r}: runner must be one of {', '.join(RUNNERS)}, got {runner!r}")
+    if runner == "group" and not per_step:
+        from sdp_cli.runner import loop_configs
+
+        loop_configs(name, spec)   # validates every run now, not hours into `dvc repro`
+        out["group"][name] = {"experiment": name, "dir": f"runs/{name}"}
+        return out
     for gi, raw in enumerate(spec["groups"]):
-        unknown = set(raw) - set(GROUP_DEFAULTS) - {"task"}
-        if unknown:
-            raise SdpError(f"experiment {name!r}, group {gi}: unknown keys {sorted(unknown)}")
-        if "task" not in raw:
-            raise SdpError(f"experiment {name!r}, group {gi}: 'task' is required")
-        g = {**GROUP_DEFAULTS, **raw}
+        g = check_group(name, gi, raw)
         t_a_opt = f"--t-a {g['t_a']}" if g["t_a"] is not None else ""
         k_opt = f"--k-rollout {g['k_rollout']}" if g["k_rollout"] is not None else ""
         train_opts = _train_opts(g)

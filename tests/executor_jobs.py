@@ -57,3 +57,24 @@ def assert_same_dataset(p, q) -> dict:
     np.testing.assert_allclose(a["X"], b["X"], atol=1e-8)
     np.testing.assert_allclose(a["K"], b["K"], atol=1e-6)
     return a
+
+
+def die_once_after_training(marker, config, out, device="auto"):
+    """`sdp_cli.runner.run_job`, but the first call (per marker) kills its worker process as soon as the
+    run's training has finished, before its evaluation: the runner must redo (resume) that run."""
+    import threading
+    import time
+    from pathlib import Path
+
+    from sdp_cli.runner import run_job
+
+    if not os.path.exists(marker):
+        open(marker, "w").close()
+
+        def kill_when_trained():
+            while not (Path(out) / "it0" / "policy" / "checkpoint.pt").exists():
+                time.sleep(0.02)
+            os._exit(1)
+
+        threading.Thread(target=kill_when_trained, daemon=True).start()
+    return run_job(config, out, device)

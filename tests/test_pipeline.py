@@ -17,7 +17,11 @@ EXPERIMENTS = sorted(p.stem for p in (ROOT / "pipelines").glob("*.yaml"))
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_every_experiment_expands_into_chained_stages(name):
-    stages = expand(name, load_experiment(name, root=ROOT))
+    spec = load_experiment(name, root=ROOT)
+    if spec.get("runner") == "group":   # one stage runs every run (sdp_cli.runner); its per-step view must chain too
+        grouped = expand(name, spec)
+        assert list(grouped["group"]) == [name] and not grouped["train_first"]
+    stages = expand(name, spec, per_step=True)
     assert stages["train_first"], name
     trained = {v["dir"] + "/policy" for k in ("train_first", "train_next") for v in stages[k].values()}
     for key, st in list(stages["collect_next"].items()) + list(stages["train_next"].items()):

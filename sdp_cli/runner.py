@@ -1,0 +1,133 @@
+"""The runs of an experiment in parallel: ``sdp pipeline NAME --run``.
+
+Every run of ``pipelines/NAME.yaml`` (one per group x method x seed x n_traj) is one
+``sdp loop`` (:func:`sdp_cli.loop.run_loop`) in ``OUT/<task>-<method>-n<n_traj>-s<seed>/``:
+collect, train, evaluate, for each iteration, with the collection seeds of the DVC stages
+(``1000 * seed + k``) and the ``save_at`` epochs evaluated from the same training. The runs
+are independent, so they are jobs of an executor (:mod:`sdp_cli.executor`):
+
+- ``local``: a pool of ``workers`` processes, one torch thread each (inside a run the solves
+  run serially: the parallelism is across runs);
+- ``dask``: a ``LocalCluster`` of ``workers`` processes, or the workers of a running
+  scheduler (``--scheduler tcp://HOST:PORT``); ``OUT`` must then be on a file system that
+  every worker sees (as on a cluster's shared home or scratch).
+
+Resume and failures: a run writes every stage atomically and training checkpoints every
+minute, so a run started again continues where it stopped (``sdp loop`` resume). A run whose
+worker died (killed, out of memory, node lost) is submitted again and resumes; a run that
+raised is reported and the others go on; the command fails at the end if any run failed.
+Running it again after an interruption redoes only what is missing. Results equal those of
+running the runs one after another (same seeds, one thread each; tested).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable
+
+import pandas as pd
+
+from sdp_cli.errors import SdpError
+
+#: environment defaults of ``sdp pipeline --run`` (so that the DVC stage's command, and with it
+#: its hash, is the same on a laptop and on a cluster)
+ENV_EXECUTOR, ENV_WORKERS, ENV_SCHEDULER = "SDP_EXECUTOR", "SDP_WORKERS", "SDP_SCHEDULER"
+
+
+def run_name(task: str, method: str, n_traj: int, seed: int) -> str:
+    """The folder of one run (the same name as the DVC stages' run folders)."""
+    return f"{task}-{method}-n{n_traj}-s{seed}"
+
+
+def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:
+    """``{run name: LoopConfig}`` of every run of an experiment (see :mod:`sdp_cli.pipeline`)."""
+    from sdp_cli.loop import LoopConfig
+    from sdp_cli.pipeline import check_group
+
+    runs = {}
+    for gi, raw in enumerate(spec["groups"]):
+        g = check_group(name, gi, raw)
+        for method, seed, n_traj in itertools.product(g["methods"], g["seeds"], g["n_traj"]):
+            key = run_name(g["task"], method, n_traj, seed)
+            if key in runs:
+                raise SdpError(f"experiment {name!r}: run {key} appears in two groups")
+            runs[key] = LoopConfig(
+                task=g["task"], method=method, n_algo=g["n_algo"], n_traj=(int(n_traj),), epochs=g["epochs"],
+                seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
+                eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
+                test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
+                train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
+                save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
+    return runs
+
+
+def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
+    """One run, in a worker process: ``sdp loop`` with one torch thread; its summary rows."""
+    import torch
+
+    from sdp_cli.loop import LoopConfig, run_loop
+    from sdp_cli.train import resolve_device
+
+    torch.set_num_threads(1)
+    cfg = LoopConfig(**{**config, "n_traj": tuple(config["n_traj"]), "eval_t_a": tuple(config["eval_t_a"]),
+                        "eval_t_a_last": tuple(config["eval_t_a_last"]), "save_at": tuple(config["save_at"]),
+                        "device": str(resolve_device(device))})
+    return run_loop(cfg, out, log=lambda s: None).to_dict("records")
+
+
+def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:
+    """Options given on the command line, else from ``SDP_EXECUTOR``/``SDP_WORKERS``/``SDP_SCHEDULER``."""
+    executor = executor or os.environ.get(ENV_EXECUTOR) or None
+    scheduler = scheduler or os.environ.get(ENV_SCHEDULER) or None
+    if workers is None and os.environ.get(ENV_WORKERS):
+        try:
+            workers = int(os.environ[ENV_WORKERS])
+        except ValueError:
+            raise SdpError(f"{ENV_WORKERS} must be an integer, got {os.environ[ENV_WORKERS]!r}") from None
+    return executor, workers, scheduler
+
+
+def run_group(name: str, out: str | os.PathLike, executor: str | None = None, workers: int | None = None,
+              scheduler: str | None = None, device: str = "auto", only: list[str] | None = None,
+              log: Callable[[str], None] = print, job: Callable = run_job, root: Path = Path(".")) -> pd.DataFrame:
+    """Run (or resume) every run of experiment ``name`` under ``out``; their summaries, one table.
+
+    ``only``: run names to run (default all). ``job``: the per-run function (tests substitute
+    one that kills its worker once)."""
+    from sdp_cli.executor import check_executor_options, error_status, make_executor
+    from sdp_cli.loop import check_resume
+    from sdp_cli.pipeline import load_experiment
+    from sdp_cli.progress import count_progress
+
+    executor, workers, scheduler = executor_options(executor, workers, scheduler)
+    check_executor_options(executor, workers, scheduler)
+    runs = loop_configs(name, load_experiment(name, root))
+    if only:
+        unknown = sorted(set(only) - set(runs))
+        if unknown:
+            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+        runs = {k: v for k, v in runs.items() if k in only}
+    out = Path(out)
+    for key, cfg in runs.items():   # a folder holding other settings is refused before any work
+        check_resume(cfg, out / key)
+    keys = list(runs)
+    argsets = [(asdict(runs[k]), str(out / k), device) for k in keys]
+    tables, failed = [], []
+    with make_executor(executor, workers, scheduler) as ex:
+        log(f"{len(keys)} runs of {name!r} on {ex.describe()}")
+        with count_progress(f"{name} (runs)", len(keys), True) as on_done:
+            for done, (i, res) in enumerate(ex.imap_unordered(job, argsets), 1):
+                if res.ok:
+                    tables.append(pd.DataFrame(res.value).assign(run=keys[i]))
+                    log(f"  {keys[i]}: done")
+                else:
+                    failed.append(f"{keys[i]} ({error_status(res.error)})")
+                    log(f"  {keys[i]}: FAILED: {error_status(res.error)}")
+                on_done(done, len(keys))
+    if failed:
+        raise SdpError(f"{len(failed)} of {len(keys)} runs failed: {'; '.join(failed)}; the others are kept, "
+                       "re-run to retry the failed ones")
+    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()

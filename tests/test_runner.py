@@ -1,0 +1,131 @@
+"""`sdp pipeline NAME --run` (sdp_cli.runner): the runs of an experiment in parallel, resumable, with the
+same results as one after another; a killed worker's run is redone."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.data.artifacts import load_npz
+from sdp_cli.errors import SdpError
+from sdp_cli.runner import loop_configs, run_group
+
+TINY = """
+description: two runs of a tiny loop
+runner: group
+groups:
+  - task: pendulum
+    methods: [dp]
+    seeds: [0, 1]
+    n_traj: [2]
+    epochs: 2
+    save_at: [1]
+    horizon: 8
+    t_a: 4
+    n_test: 2
+    train: {batch_size: 8}
+"""
+RUNS = ["pendulum-dp-n2-s0", "pendulum-dp-n2-s1"]
+VALUES = ["iteration", "epochs", "t_a", "policy_cost_mean", "success_rate", "refined_cost_mean",
+          "to_alone_cost_mean", "refined_iterations_mean"]
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    r = tmp_path_factory.mktemp("exp")
+    (r / "pipelines").mkdir()
+    (r / "pipelines" / "tiny.yaml").write_text(TINY)
+    return r
+
+
+@pytest.fixture(scope="module")
+def sequential(root):
+    """The reference: the runs one after another in this process."""
+    out = root / "seq"
+    df = run_group("tiny", out, executor="local", workers=1, device="cpu", root=root, log=lambda s: None)
+    return out, df
+
+
+def _table(df):
+    return df.sort_values(["run", "epochs"])[["run", *VALUES]].reset_index(drop=True)
+
+
+def _same_runs(a, b):
+    for run in RUNS:
+        ca = torch.load(a / run / "it0" / "policy" / "checkpoint.pt", weights_only=True)
+        cb = torch.load(b / run / "it0" / "policy" / "checkpoint.pt", weights_only=True)
+        for k in ca["ema_model"]:
+            assert torch.equal(ca["ema_model"][k], cb["ema_model"][k]), (run, k)
+        for name in ("rollout_ta4.npz", "rollout_e1-ta4.npz"):
+            xa, _ = load_npz(a / run / "it0" / "eval" / name)
+            xb, _ = load_npz(b / run / "it0" / "eval" / name)
+            np.testing.assert_array_equal(xa["X"], xb["X"], err_msg=f"{run}/{name}")
+
+
+def test_runs_of_an_experiment_are_loop_configs(root):
+    from sdp_cli.pipeline import expand, load_experiment
+
+    spec = load_experiment("tiny", root)
+    cfgs = loop_configs("tiny", spec)
+    assert list(cfgs) == RUNS
+    assert cfgs[RUNS[1]].seed == 1 and cfgs[RUNS[1]].collect_seed(0) == 1000 and cfgs[RUNS[0]].save_at == (1,)
+    stages = expand("tiny", spec)   # runner: group -> one DVC stage running every run
+    assert stages["group"] == {"tiny": {"experiment": "tiny", "dir": "runs/tiny"}}
+    assert not any(stages[k] for k in stages if k != "group")
+
+
+def test_sequential_runs_evaluate_both_budgets(sequential):
+    out, df = sequential
+    assert sorted(df.run.unique()) == RUNS
+    assert sorted(df.epochs.unique()) == [1, 2]      # save_at 1 and the final epoch 2, from one training
+    assert (out / RUNS[0] / "it0" / "policy" / "epoch_1.pt").is_file()
+    summary = pd.read_csv(out / RUNS[0] / "summary.csv")
+    assert len(summary) == 2 and np.isfinite(summary.policy_cost_mean).all()
+
+
+def test_parallel_runs_equal_sequential(root, sequential):
+    out = root / "par"
+    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None)
+    pd.testing.assert_frame_equal(_table(df), _table(sequential[1]))
+    _same_runs(out, sequential[0])
+
+
+def test_killed_worker_run_is_redone_and_equals_sequential(root, sequential, tmp_path):
+    from executor_jobs import die_once_after_training
+
+    out = root / "killed"
+    job = functools.partial(die_once_after_training, str(tmp_path / "killed-once"))
+    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None, job=job)
+    assert (tmp_path / "killed-once").exists()       # a worker did die
+    pd.testing.assert_frame_equal(_table(df), _table(sequential[1]))
+    _same_runs(out, sequential[0])
+
+
+def test_resume_redoes_nothing_and_only_selects_runs(root, sequential):
+    out, _ = sequential
+    files = [p for p in out.rglob("*") if p.is_file() and p.suffix in (".npz", ".pt")]
+    before = {p: p.stat().st_mtime_ns for p in files}
+    df = run_group("tiny", out, executor="local", workers=1, device="cpu", root=root, only=[RUNS[1]],
+                   log=lambda s: None)
+    assert set(df.run) == {RUNS[1]}
+    assert {p: p.stat().st_mtime_ns for p in files} == before
+    with pytest.raises(SdpError, match="has no run"):
+        run_group("tiny", out, workers=1, root=root, only=["nope"], log=lambda s: None)
+
+
+def test_cli_run_errors_are_one_line(root, monkeypatch):
+    monkeypatch.chdir(root)
+    runner = CliRunner()
+    r = runner.invoke(app, ["pipeline", "tiny", "--run", "--executor", "mpi"])
+    assert r.exit_code == 1 and "unknown executor 'mpi'" in r.output
+    monkeypatch.setenv("SDP_WORKERS", "two")
+    r = runner.invoke(app, ["pipeline", "tiny", "--run"])
+    assert r.exit_code == 1 and "SDP_WORKERS must be an integer" in r.output
+    r = runner.invoke(app, ["pipeline", "tiny", "--run", "--estimate"])
+    assert r.exit_code == 1 and "exclude each other" in r.output
