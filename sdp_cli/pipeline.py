@@ -102,8 +102,6 @@ def expand(name: str, spec: dict, per_step: bool = False) -> dict:
     if runner not in RUNNERS:
         raise SdpError(f"experiment {name!r}: runner must be one of {', '.join(RUNNERS)}, got {runner!r}")
     if runner == "group" and not per_step:
-        from sdp_cli.runner import loop_configs
-
         loop_configs(name, spec)   # validates every run now, not hours into `dvc repro`
         out["group"][name] = {"experiment": name, "dir": f"runs/{name}"}
         return out
@@ -114,7 +112,7 @@ def expand(name: str, spec: dict, per_step: bool = False) -> dict:
         train_opts = _train_opts(g)
         eval_t_a = g["eval_t_a"] or [g["t_a"]]
         for method, seed, n_traj in itertools.product(g["methods"], g["seeds"], g["n_traj"]):
-            run = f"{g['task']}-{method}-n{n_traj}-s{seed}"
+            run = run_name(g["task"], method, n_traj, seed)
             base = f"runs/{name}/{run}"
             for k in range(g["n_algo"]):
                 d = f"{base}/it{k}"
@@ -152,6 +150,32 @@ def expand(name: str, spec: dict, per_step: bool = False) -> dict:
                         "k_rollout": k_opt, "max_iter": g["max_iter"], "dir": f"{d}/eval/e{epochs}-ta{ta}",
                         "refine_opts": "--single-shooting" if g["single_shooting"] else "", "tags": tags}
     return out  # empty dictionaries are fine: DVC's foreach then generates no stage
+
+
+def run_name(task: str, method: str, n_traj: int, seed: int) -> str:
+    """The folder of one run (the same name as the DVC stages' run folders)."""
+    return f"{task}-{method}-n{n_traj}-s{seed}"
+
+
+def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:
+    """``{run name: LoopConfig}`` of every run of an experiment (see :mod:`sdp_cli.pipeline`)."""
+    from sdp_cli.loop import LoopConfig
+
+    runs = {}
+    for gi, raw in enumerate(spec["groups"]):
+        g = check_group(name, gi, raw)
+        for method, seed, n_traj in itertools.product(g["methods"], g["seeds"], g["n_traj"]):
+            key = run_name(g["task"], method, n_traj, seed)
+            if key in runs:
+                raise SdpError(f"experiment {name!r}: run {key} appears in two groups")
+            runs[key] = LoopConfig(
+                task=g["task"], method=method, n_algo=g["n_algo"], n_traj=(int(n_traj),), epochs=g["epochs"],
+                seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
+                eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
+                test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
+                train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
+                save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
+    return runs
 
 
 def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: Path = Path(".")) -> dict:

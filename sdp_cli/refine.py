@@ -12,110 +12,17 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
-from sdp_cli.data.collect import RESULT_KEYS
+from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, TIE_RTOL, WIN_BASELINE, WIN_NONE,  # noqa: F401 (re-exported)
+                                 WIN_POLICY, argmin_cost, failed_record, refine_instance, usable_guess,
+                                 warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params
-
-#: winner codes stored in ``inst_winner``
-WIN_NONE, WIN_POLICY, WIN_BASELINE = -1, 0, 1
-#: relative cost difference under which two converged solves tie in ArgminCost
-TIE_RTOL = 1e-9
-
-
-def argmin_cost(candidates: Sequence) -> int | None:
-    """Index of the converged candidate with the lowest cost; None if none converged.
-
-    ``candidates`` are objects with ``converged`` and ``cost`` (e.g. ``SolveResult``);
-    ``None`` entries (candidates that were not computed) are skipped. Costs within
-    ``TIE_RTOL`` of each other are a tie, won by the earlier candidate (the policy guess):
-    two solves that reach the same optimum differ by rounding (1e-13), which must not decide.
-    """
-    best, best_cost = None, np.inf
-    for i, c in enumerate(candidates):
-        if c is None or not bool(c.converged) or not np.isfinite(c.cost):
-            continue
-        if c.cost < best_cost - TIE_RTOL * max(1.0, abs(best_cost) if np.isfinite(best_cost) else 0.0):
-            best, best_cost = i, float(c.cost)
-    return best
-
-
-def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
-    """A policy rollout worth warm-starting from: finite, not diverged (states within
-    ``DIVERGENCE_STATE``, cost <= ``DIVERGENCE_COST``)."""
-    from sdp_cli.rollout import DIVERGENCE_COST, DIVERGENCE_STATE
-
-    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))) or np.abs(X).max() > DIVERGENCE_STATE:
-        return False
-    with np.errstate(all="ignore"):
-        cost = task.cost(X, U, xi)
-    return bool(np.isfinite(cost) and cost <= DIVERGENCE_COST)
-
-
-#: per-instance single-shooting fields and their values when that solve was not run
-SS_MISSING = {"cost": np.nan, "iterations": -1, "converged": False, "time": 0.0}
-SS_KEYS = tuple(f"ss_{g}_{k}" for g in ("pol", "base") for k in SS_MISSING)
-
-
-def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_iter: int) -> dict:
-    """The second TO baseline (:mod:`sdp_cli.trajopt.single_shooting`) from the policy's and the naive controls."""
-    from sdp_cli.trajopt.single_shooting import get_single_shooting
-
-    ss = get_single_shooting(task, max_iter)
-    rec = {}
-    for g, guess in (("pol", U_pol if usable else None), ("base", task.naive_guess(xi)[1] if baseline else None)):
-        if guess is None:
-            rec.update({f"ss_{g}_{k}": v for k, v in SS_MISSING.items()})
-            continue
-        r = ss.solve(xi, guess)
-        rec.update({f"ss_{g}_cost": r.cost, f"ss_{g}_iterations": r.iterations,
-                    f"ss_{g}_converged": bool(r.converged), f"ss_{g}_time": r.solve_time})
-    return rec
-
-
-def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
-                    U_pol: np.ndarray, max_iter: int, baseline: bool, single_shooting: bool = False) -> dict:
-    """Solve one instance from the policy guess (and the naive guess); picklable dict out.
-
-    ``single_shooting``: also solve both with the single-shooting baseline (``ss_*`` records; reported,
-    never kept in the dataset)."""
-    from sdp_cli.trajopt import get_solver
-
-    task = get_task(task_name, **task_options)
-    solver = get_solver(task, max_iter=max_iter)
-    U_pol = np.clip(U_pol, task.u_lb, task.u_ub)
-    # a diverged rollout (non-finite, or cost above the rollout's divergence threshold) is no
-    # guess: solving from states of 1e7 wastes the iteration budget at best, and fatrop's line
-    # search can loop forever from there
-    usable = usable_guess(task, xi, X_pol, U_pol)
-    pol = solver.solve(xi, X_pol, U_pol) if usable else None
-    base = solver.solve(xi, *task.naive_guess(xi)) if baseline else None
-    win = argmin_cost([pol, base])
-    rec = {
-        "xi": xi,
-        "pol_cost": pol.cost if pol else np.nan, "pol_iterations": pol.iterations if pol else -1,
-        "pol_converged": bool(pol.converged) if pol else False, "pol_time": pol.solve_time if pol else 0.0,
-        "base_cost": base.cost if base else np.nan, "base_iterations": base.iterations if base else -1,
-        "base_converged": bool(base.converged) if base else False, "base_time": base.solve_time if base else 0.0,
-        "winner": WIN_NONE if win is None else (WIN_POLICY if win == 0 else WIN_BASELINE),
-        # both solutions, for plots (TO alone vs refined); NaN where not solved
-        "pol_X": pol.X if pol else np.full(X_pol.shape, np.nan),
-        "base_X": base.X if base else np.full(X_pol.shape, np.nan),
-    }
-    # the kept candidate, or (for the record) whichever was computed; never kept unless converged
-    res = (pol, base)[win] if win is not None else (pol if pol is not None else base)
-    if res is not None:
-        rec.update({k: np.asarray(getattr(res, k)) for k in RESULT_KEYS})
-    rec["converged"] = np.asarray(win is not None)
-    if single_shooting:
-        rec.update(_single_shooting_record(task, xi, U_pol, usable, baseline, max_iter))
-    return rec
-
 
 @dataclass
 class RefineStats:
@@ -128,14 +35,6 @@ class RefineStats:
     mean_base_time: float = float("nan")
 
 
-def failed_record(xi: np.ndarray, status: str) -> dict:
-    """The record of an instance whose job raised: nothing converged, nothing kept."""
-    return {"xi": xi, "pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
-            "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
-            "winner": WIN_NONE, "converged": np.asarray(False), "status": status, "pol_X": None, "base_X": None,
-            **{f"ss_{g}_{k}": v for g in ("pol", "base") for k, v in SS_MISSING.items()}}
-
-
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
            baseline: bool = True, single_shooting: bool = False, workers: int | None = None,
            progress: Callable[[int], None] | None = None, executor: "str | Executor" = "local",
@@ -146,7 +45,6 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     (:func:`sdp_cli.executor.make_executor`, or an open executor, not closed here). A job
     that raises counts as an instance where nothing converged.
     """
-    from sdp_cli.data.collect import warm_solver
     from sdp_cli.executor import Executor, check_executor_options, error_status, make_executor
 
     arrays, meta = load_npz(rollouts, kind="rollout")

@@ -22,7 +22,6 @@ running the runs one after another (same seeds, one thread each; tested).
 
 from __future__ import annotations
 
-import itertools
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -35,33 +34,6 @@ from sdp_cli.errors import SdpError
 #: environment defaults of ``sdp pipeline --run`` (so that the DVC stage's command, and with it
 #: its hash, is the same on a laptop and on a cluster)
 ENV_EXECUTOR, ENV_WORKERS, ENV_SCHEDULER = "SDP_EXECUTOR", "SDP_WORKERS", "SDP_SCHEDULER"
-
-
-def run_name(task: str, method: str, n_traj: int, seed: int) -> str:
-    """The folder of one run (the same name as the DVC stages' run folders)."""
-    return f"{task}-{method}-n{n_traj}-s{seed}"
-
-
-def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:
-    """``{run name: LoopConfig}`` of every run of an experiment (see :mod:`sdp_cli.pipeline`)."""
-    from sdp_cli.loop import LoopConfig
-    from sdp_cli.pipeline import check_group
-
-    runs = {}
-    for gi, raw in enumerate(spec["groups"]):
-        g = check_group(name, gi, raw)
-        for method, seed, n_traj in itertools.product(g["methods"], g["seeds"], g["n_traj"]):
-            key = run_name(g["task"], method, n_traj, seed)
-            if key in runs:
-                raise SdpError(f"experiment {name!r}: run {key} appears in two groups")
-            runs[key] = LoopConfig(
-                task=g["task"], method=method, n_algo=g["n_algo"], n_traj=(int(n_traj),), epochs=g["epochs"],
-                seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
-                eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
-                test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
-                train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
-                save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
-    return runs
 
 
 def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
@@ -99,7 +71,7 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     one that kills its worker once)."""
     from sdp_cli.executor import check_executor_options, error_status, make_executor
     from sdp_cli.loop import check_resume
-    from sdp_cli.pipeline import load_experiment
+    from sdp_cli.pipeline import load_experiment, loop_configs
     from sdp_cli.progress import count_progress
 
     executor, workers, scheduler = executor_options(executor, workers, scheduler)

@@ -54,3 +54,13 @@ def test_stage_deps_cover_the_code_it_runs(stage):
     missing = [f for f in sorted(_closure(ENTRIES[stage]) - EXEMPT)
                if not any(f == d or f.startswith(d.rstrip("/") + "/") for d in code)]
     assert not missing, f"dvc.yaml stage {stage!r} runs {missing} but does not depend on them"
+
+
+@pytest.mark.parametrize("stage", sorted(ENTRIES))
+def test_stage_file_deps_are_code_it_runs(stage):
+    """No stale file deps: a module the stage does not import is no reason to re-run it."""
+    spec = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"][stage]
+    deps = (spec.get("do") or spec)["deps"]
+    files = [d for d in deps if isinstance(d, str) and d.startswith("sdp_cli") and d.endswith(".py")]
+    extra = sorted(set(files) - _closure(ENTRIES[stage]))
+    assert not extra, f"dvc.yaml stage {stage!r} depends on {extra} but does not run them"

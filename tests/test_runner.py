@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.runner import loop_configs, run_group
+from sdp_cli.pipeline import loop_configs
+from sdp_cli.runner import run_group
 
 TINY = """
 description: two runs of a tiny loop

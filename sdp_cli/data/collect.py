@@ -27,11 +27,9 @@ import numpy as np
 from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz, split_timing
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
+from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, refine_index, sample_xi,  # noqa: F401 (re-exported)
+                                 solve_index, warm_solver)
 from sdp_cli.tasks import Task, get_task
-
-RESULT_KEYS = ("X", "U", "K", "A", "B", "Phi", "cost", "iterations", "solve_time", "converged",
-               "max_violation")
-
 
 @dataclass(frozen=True)
 class CollectConfig:
@@ -70,27 +68,6 @@ class CollectConfig:
         return ident
 
 
-def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
-    """``xi_i``: a pure function of ``(seed, index)``."""
-    return task.sample_xi(np.random.default_rng([int(seed), int(index)]))
-
-
-def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int) -> dict:
-    """Solve instance ``index`` from the naive guess; a dict of arrays (picklable)."""
-    from sdp_cli.trajopt import get_solver
-
-    task = get_task(task_name, **task_options)
-    solver = get_solver(task, max_iter=max_iter)
-    xi = sample_xi(task, seed, index)
-    X0, U0 = task.naive_guess(xi)
-    res = solver.solve(xi, X0, U0)
-    out = {k: np.asarray(getattr(res, k)) for k in RESULT_KEYS}
-    out["xi"] = xi
-    out["index"] = np.asarray(index)
-    out["status"] = np.asarray(str(res.status))
-    return out
-
-
 class _Jobs:
     """Turns sample indices into solver jobs ``(fn, args)``: naive guess, or policy guess."""
 
@@ -114,23 +91,14 @@ class _Jobs:
             return [(solve_index, (c.task, c.task_options, c.seed, i, c.max_iter)) for i in indices]
         import torch
 
-        from sdp_cli.refine import refine_instance
         from sdp_cli.rollout import instance_generators, rollout_policy
 
         xis = np.stack([sample_xi(self.task, c.seed, i) for i in indices])
         with torch.no_grad():
             traj = rollout_policy(self.policy, xis, self.rcfg,
                                   generators=instance_generators(c.seed, indices))
-        return [(_refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter))
+        return [(refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter))
                 for k, i in enumerate(indices)]
-
-
-def _refine_index(task_name, task_options, index, xi, X_pol, U_pol, max_iter) -> dict:
-    from sdp_cli.refine import refine_instance
-
-    rec = refine_instance(task_name, task_options, xi, X_pol, U_pol, max_iter, baseline=True)
-    rec["index"] = np.asarray(index)
-    return {k: np.asarray(v) for k, v in rec.items()}
 
 
 def policy_fingerprint(path: str | os.PathLike) -> str:
@@ -227,25 +195,6 @@ def _next_indices(done: dict, inflight: set, n_traj: int, cap: int) -> Iterator[
             yield i
             need -= 1
         i += 1
-
-
-def warm_solver(task_name: str, task_options: dict, max_iter: int) -> int:
-    """Build (or reuse) this process's solver of the task; the process's build count."""
-    from sdp_cli.trajopt import build_count, get_solver
-
-    get_solver(get_task(task_name, **task_options), max_iter=max_iter)
-    return build_count()
-
-
-def failed_result(task: Task, index: int, xi: np.ndarray, status: str) -> dict:
-    """The record of an attempt whose job raised: not converged, NaN arrays of the right shapes."""
-    T, nx, nu, ndx = task.T, task.nx, task.nu, task.ndx
-    nan = lambda *shape: np.full(shape, np.nan)
-    return {"X": nan(T + 1, nx), "U": nan(T, nu), "K": nan(T, nu, ndx), "A": nan(T, ndx, ndx),
-            "B": nan(T, ndx, nu), "Phi": nan(T, ndx, ndx), "cost": np.asarray(np.nan),
-            "iterations": np.asarray(-1), "solve_time": np.asarray(0.0), "converged": np.asarray(False),
-            "max_violation": np.asarray(np.nan), "xi": np.asarray(xi), "index": np.asarray(index),
-            "status": np.asarray(status)}
 
 
 @dataclass

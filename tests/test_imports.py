@@ -1,0 +1,73 @@
+"""The package's import graph (every `import` of an sdp_cli module, including the ones inside
+functions) has no cycle: each module can be read, tested and replaced on its own (e.g. `sdp collect`
+and `sdp refine` share their solve jobs through sdp_cli.solve_jobs instead of importing each other)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for f in (ROOT / "sdp_cli").rglob("*.py"):
+        parts = list(f.relative_to(ROOT).with_suffix("").parts)
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+    return out
+
+
+def import_graph() -> dict[str, set[str]]:
+    mods = _modules()
+
+    def owner(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for m, f in mods.items():
+        deps = set()
+        for node in ast.walk(ast.parse(f.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            deps |= {owner(n) for n in names if n.startswith("sdp_cli")}
+        # a package's own submodules and the packages above a module are not edges of a cycle
+        graph[m] = {d for d in deps if d and d != m and not m.startswith(d + ".") and not d.startswith(m + ".")}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state, stack = {}, []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(graph.get(m, ())):
+            if state.get(d) == 1:
+                return stack[stack.index(d):] + [d]
+            if d not in state and (c := visit(d)):
+                return c
+        stack.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(graph):
+        if m not in state and (c := visit(m)):
+            return c
+    return None
+
+
+def test_find_cycle_finds_one():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
+
+
+def test_no_import_cycles():
+    graph = import_graph()
+    assert "sdp_cli.solve_jobs" in graph["sdp_cli.data.collect"] and "sdp_cli.solve_jobs" in graph["sdp_cli.refine"]
+    assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
