@@ -193,8 +193,8 @@ def evaluate_cmd(
     tag: Annotated[Optional[list[str]], typer.Option(help="Extra column KEY=VALUE (repeatable), e.g. --tag experiment=small.")] = None,
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the row as a JSON metrics file (DVC metrics).")] = None,
 ) -> None:
-    """Summarize a run as one tidy CSV row (policy, refined and TO-alone metrics)."""
-    from sdp_cli.evaluate import evaluation_row, write_evaluation, write_metrics
+    """Summarize a run as one tidy CSV row (policy, refined and TO-alone metrics), with its manifest."""
+    from sdp_cli.evaluate import evaluation_artifacts, evaluation_row, write_evaluation, write_metrics
 
     extra = {}
     for t in tag or []:
@@ -206,7 +206,7 @@ def evaluate_cmd(
 
     check_writable(out, metrics)   # both outputs, before writing either
     row = evaluation_row(rollouts, refined, extra)
-    write_evaluation([row], out)
+    write_evaluation([row], out, [evaluation_artifacts(rollouts, refined)])
     if metrics is not None:
         write_metrics(row, metrics)
     typer.echo(f"wrote {out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"

@@ -9,10 +9,21 @@ others), TO-alone cost (naive guess), convergence rate, iterations and solve tim
 with ``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*``
 from the naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that
 ``sdp report`` can aggregate across seeds.
+
+Manifest: next to the CSV, ``<stem>.manifest.json`` names what each row was computed from
+(rollouts, refined, the policy checkpoint, its training dataset; paths relative to the manifest),
+with the run, iteration, method, seed, T_a, epochs and the code revision: ``sdp report`` finds
+evaluations through their manifests and opens only the files they name.
+
+Times are read from the artifacts' timing sidecars (:func:`sdp_cli.data.artifacts.load_timing`;
+NaN when missing) and written to the CSV's timing sidecar (``eval.timing.json``: the timing
+columns, one record per row), so that the CSV, the manifest and the metrics JSON hold no clock
+readings; :func:`read_evaluation` joins them back.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -27,6 +38,11 @@ def _mean(a) -> float:
     a = np.asarray(a, dtype=float)
     a = a[np.isfinite(a)]
     return float(a.mean()) if a.size else float("nan")
+
+
+#: manifest file of an evaluation CSV (``eval.csv`` -> ``eval.manifest.json``) and the files it names
+MANIFEST_SUFFIX = ".manifest.json"
+ARTIFACT_KEYS = ("rollouts", "refined", "policy", "data")
 
 
 def is_timing_column(name: str) -> bool:
@@ -122,13 +138,72 @@ def write_metrics(row: dict, out: str | os.PathLike) -> Path:
     return atomic_write_bytes(out, lambda f: f.write(json.dumps(clean, indent=2, default=str).encode()))
 
 
-def write_evaluation(rows: list[dict], out: str | os.PathLike) -> Path:
-    """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar."""
+def evaluation_artifacts(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None) -> dict:
+    """The files an evaluation row comes from, as absolute paths (None where unknown): the
+    rollouts, their refinement, the policy checkpoint that made them and its training dataset."""
+    _, meta = load_npz(rollouts, kind="rollout")
+
+    def existing(p):
+        return str(Path(p).resolve()) if p and Path(p).exists() else None
+
+    return {"rollouts": existing(rollouts), "refined": existing(refined),
+            "policy": existing((meta.get("config") or {}).get("policy")),
+            "data": existing((meta.get("policy_dataset") or {}).get("path"))}
+
+
+def manifest_path(csv: str | os.PathLike) -> Path:
+    """``eval.csv`` -> ``eval.manifest.json`` (next to it)."""
+    p = Path(csv)
+    return p.with_name(p.stem + MANIFEST_SUFFIX)
+
+
+def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None) -> Path:
+    """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar, and the
+    manifest of ``artifacts`` (one :func:`evaluation_artifacts` per row) next to it."""
+    from sdp_cli.data.artifacts import git_revision
+
     df = pd.DataFrame(rows)
     timed = [c for c in df.columns if is_timing_column(c)]
+    out = Path(out)
     path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))
     save_timing(out, {"rows": df[timed].astype(float).to_dict("records")})
+    if artifacts is not None:
+        if len(artifacts) != len(rows):
+            raise SdpError(f"{len(rows)} evaluation rows but {len(artifacts)} artifact records")
+        folder = out.resolve().parent
+        entries = []
+        for i, (row, art) in enumerate(zip(rows, artifacts)):
+            rel = {k: (os.path.relpath(v, folder) if v else None) for k, v in art.items()}
+            entries.append({"row": i, "run": row.get("run"), "iteration": int(row.get("iteration") or 0),
+                            "method": row.get("method"), "task": row.get("task"), "seed": row.get("train_seed"),
+                            "t_a": row.get("t_a"), "epochs": row.get("epochs"), **rel})
+        man = {"format": "sdp-evaluation-manifest", "format_version": 1, "eval": out.name,
+               "git_rev": git_revision(), "entries": entries}
+        text = json.dumps(man, indent=1, default=_plain).encode()
+        atomic_write_bytes(manifest_path(out), lambda f: f.write(text))
     return path
+
+
+def _plain(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def read_manifest(path: str | os.PathLike) -> dict:
+    """A manifest with its paths made absolute; ``SdpError`` if it is unreadable or names no CSV."""
+    path = Path(path)
+    try:
+        man = json.loads(path.read_text())
+        entries, name = man["entries"], man["eval"]
+        folder = path.resolve().parent
+        for e in entries:
+            for k in ARTIFACT_KEYS:
+                e[k] = str((folder / e[k]).resolve()) if e.get(k) else None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise SdpError(f"corrupt evaluation manifest {path}: {e}") from None
+    man["eval"] = str(folder / name)
+    return man
 
 
 def read_evaluation(path: str | os.PathLike) -> pd.DataFrame:

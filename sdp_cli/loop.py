@@ -162,12 +162,12 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                        log: Callable[[str], None], last: bool = False, progress: bool = False) -> pd.DataFrame:
     """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a
     (without refine when ``cfg.eval_refine`` is off: the policy's own metrics only)."""
-    from sdp_cli.evaluate import evaluation_row, write_evaluation
+    from sdp_cli.evaluate import evaluation_artifacts, evaluation_row, write_evaluation
     from sdp_cli.progress import count_progress
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout
 
-    rows = []
+    rows, artifacts = [], []
     t_as = list(cfg.eval_t_a or (cfg.t_a,))
     if last:
         t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
@@ -187,8 +187,9 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                 refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
                        executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done)
         rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
+        artifacts.append(evaluation_artifacts(ro, rf if cfg.eval_refine else None))
     df = pd.DataFrame(rows)
-    write_evaluation(rows, eval_dir / "eval.csv")
+    write_evaluation(rows, eval_dir / "eval.csv", artifacts)
     return df
 
 
@@ -237,7 +238,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,
                   log=lambda s: None)
         log(f"[it{k}] evaluate on {cfg.n_test} test instances")
-        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"iteration": k, "loop_seed": cfg.seed}, log,
+        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"run": out.name, "iteration": k, "loop_seed": cfg.seed},
+                                log,
                                 last=k == cfg.n_algo - 1, progress=progress)
         tables.append(df)
         prev_policy = policy_dir

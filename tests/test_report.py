@@ -28,6 +28,7 @@ def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, m
     import yaml
 
     from sdp_cli.errors import SdpError
+    from sdp_cli.evaluate import write_evaluation
     from sdp_cli.report.make import make_report
 
     monkeypatch.chdir(tmp_path)
@@ -38,7 +39,8 @@ def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, m
     for epochs, cost in ((300, 50.0), (700, 20.0)):
         d = tmp_path / "runs" / "exp" / "pendulum-sdp-n10-s0" / "it0" / "eval" / f"e{epochs}-ta8"
         d.mkdir(parents=True)
-        pd.DataFrame([{**row, "epochs": epochs, "policy_cost_mean": cost}]).to_csv(d / "eval.csv", index=False)
+        write_evaluation([{**row, "epochs": epochs, "policy_cost_mean": cost}], d / "eval.csv",
+                         [{"rollouts": None, "refined": None, "policy": None, "data": None}])
     current = "runs/exp/pendulum-sdp-n10-s0/it0/eval/e700-ta8"
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(
         {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": current}}}}))
@@ -46,7 +48,7 @@ def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, m
     make_report("runs/exp", "results/exp", "exp", log=logs.append)
     rows = pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv")
     assert list(rows.epochs) == [700] and list(rows.policy_cost_mean) == [20.0]
-    assert logs and "ignoring 1 evaluation" in logs[0]
+    assert any("ignoring 1 evaluation" in s for s in logs)
     # another experiment selected: everything under --runs is reported (sdp loop folders, old runs)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump({"experiment": "small"}))
     make_report("runs/exp", "results/exp", "exp")
@@ -55,3 +57,40 @@ def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, m
         {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": "runs/exp/other"}}}}))
     with pytest.raises(SdpError, match="no evaluation of the current experiment"):
         make_report("runs/exp", "results/exp", "exp")
+
+
+def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
+    """An eval.csv without its manifest is not read (logged); a manifest that does not match its CSV is
+    one clear error; rows take run, iteration and paths from the manifest, not from the folder names."""
+    import json
+
+    import pandas as pd
+    import pytest
+
+    from sdp_cli.errors import SdpError
+    from sdp_cli.evaluate import manifest_path, write_evaluation
+    from sdp_cli.report.runs import load_runs
+
+    monkeypatch.chdir(tmp_path)
+    row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 1, "n": 2, "epochs": 5,
+           "policy_cost_mean": 1.0, "policy_cost_median": 1.0, "success_rate": 1.0, "rollout_time": 0.5,
+           "run": "my-run", "iteration": 3}
+    d = tmp_path / "runs" / "anywhere" / "deep"      # no it<k> folder: nothing is guessed from the path
+    d.mkdir(parents=True)
+    ro = d / "r.npz"
+    ro.write_bytes(b"x")
+    write_evaluation([row], d / "eval.csv", [{"rollouts": str(ro), "refined": None, "policy": None, "data": None}])
+    (tmp_path / "runs" / "old").mkdir()
+    pd.DataFrame([row]).to_csv(tmp_path / "runs" / "old" / "eval.csv", index=False)   # no manifest
+    logs = []
+    df = load_runs(tmp_path / "runs", log=logs.append)
+    assert len(df) == 1 and df.run.iloc[0] == "my-run" and df.iteration.iloc[0] == 3
+    assert df.rollouts.iloc[0] == str(ro.resolve()) and df.refined.isna().all()
+    assert df.rollout_time.iloc[0] == 0.5                 # joined back from the timing sidecar
+    assert any("1 eval.csv file(s)" in s and "without a manifest" in s for s in logs)
+    man = json.loads(manifest_path(d / "eval.csv").read_text())
+    assert man["entries"][0]["rollouts"] == "r.npz"       # relative: the runs folder can move
+    man["entries"].append(man["entries"][0])
+    manifest_path(d / "eval.csv").write_text(json.dumps(man))
+    with pytest.raises(SdpError, match="describes 2 rows but .* has 1"):
+        load_runs(tmp_path / "runs")

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.report.runs import ITERATION_DIR
+from sdp_cli.report.timing import _policy_dir
 
 MAX_ROWS = 500
 CURVE_FIELDS = ["step", "epoch", "loss", "dp", "sobolev", "lr"]
@@ -28,11 +28,11 @@ def _save(df: pd.DataFrame, path: Path) -> Path:
 
 
 def training_curves(df: pd.DataFrame, out: Path) -> list[Path]:
-    """One thinned metrics CSV per trained policy that the evaluated rows point to."""
+    """One thinned metrics CSV per trained policy that the evaluation manifests name."""
     written, done = [], set()
-    for source, run in df[["source", "run"]].drop_duplicates().itertuples(index=False):
-        it_dir = next((p for p in (Path(source), *Path(source).parents) if ITERATION_DIR.match(p.name)), None)
-        m = it_dir / "policy" / "metrics.csv" if it_dir is not None else None
+    for policy, run, it in df[["policy", "run", "iteration"]].drop_duplicates().itertuples(index=False):
+        run_dir = _policy_dir(policy)
+        m = run_dir / "metrics.csv" if run_dir is not None else None
         if m is None or not m.is_file() or m in done:
             continue
         done.add(m)
@@ -40,7 +40,7 @@ def training_curves(df: pd.DataFrame, out: Path) -> list[Path]:
         if curve.empty:
             continue
         keep = np.unique(np.r_[np.arange(0, len(curve), max(1, int(np.ceil(len(curve) / MAX_ROWS)))), len(curve) - 1])
-        name = f"{run if isinstance(run, str) and run else it_dir.parent.name}-{it_dir.name}.csv"
+        name = f"{run}-it{int(it)}.csv"
         written.append(_save(curve.iloc[keep][[c for c in CURVE_FIELDS if c in curve]], out / "curves" / name))
     return written
 

@@ -20,349 +20,16 @@ commit that produced it.
 
 from __future__ import annotations
 
-import io
 import re
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, git_revision, load_npz
+from sdp_cli.data.artifacts import atomic_write_bytes, git_revision
 from sdp_cli.errors import SdpError
-from sdp_cli.report.runs import load_runs, mean_ci, run_revisions
-
-DIVERGED = 1e5
-COLORS = {"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}
-MARKERS = {"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}
-CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
-
-
-def _log_ticks(axis, lo: float, hi: float) -> None:
-    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... as plain
-    numbers, no minor labels."""
-    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
-
-    ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 2, 5) if lo <= m * 10 ** e <= hi]
-    axis.set_major_locator(FixedLocator(ticks))
-    axis.set_major_formatter(StrMethodFormatter("{x:g}"))
-    axis.set_minor_formatter(NullFormatter())
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save_fig(fig, path: Path) -> Path:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
-    return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
-
-
-def _save_csv(df: pd.DataFrame, path: Path) -> Path:
-    """CSV; a ``ci95`` column reads "n/a" where there is no interval (one seed: see ``n_seeds``)."""
-    if "ci95" in df:
-        df = df.assign(ci95=[("n/a" if pd.isna(h) else h) for h in df["ci95"]])
-    return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
-
-
-def _save_md(df: pd.DataFrame, path: Path, title: str) -> Path:
-    def fmt(v):
-        return f"{v:.4g}" if isinstance(v, (float, np.floating)) else str(v)
-
-    lines = [f"# {title}", "", "| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
-    return atomic_write_bytes(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
-
-
-def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
-    rows = []
-    for key, g in df.groupby(by, dropna=False):
-        m, h, n = mean_ci(g[col])
-        rows.append({**dict(zip(by, key if isinstance(key, tuple) else (key,))), "mean": m, "ci95": h, "n_seeds": n})
-    return pd.DataFrame(rows)
-
-
-def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    d = df[(df.task == task) & (df.iteration == 0)]
-    if d.empty or d["n_traj"].isna().all():
-        return []
-    tab = _agg(d, ["method", "epochs", "n_traj"], "policy_cost_mean").sort_values(["method", "epochs", "n_traj"])
-    to = mean_ci(d["to_alone_cost_mean"]) if "to_alone_cost_mean" in d else (np.nan, np.nan, 0)
-    tab["to_alone_mean"] = to[0]
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
-    top = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0) * 1.3
-    for (method, epochs), g in tab.groupby(["method", "epochs"]):
-        ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
-        ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
-        ax.errorbar(g["n_traj"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), ls=ls, marker="o",
-                    color=COLORS.get(method), capsize=3, label=f"{method.upper()} ({epochs} ep.)")
-        for n in g["n_traj"][~ok]:
-            ax.annotate("∞", (n, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
-    if np.isfinite(to[0]):
-        ax.axhline(to[0], color="black", ls=":", label="TO alone")
-    n_all = tab["n_traj"].astype(float)
-    ax.set_xscale("log")
-    ax.set_xlim(n_all.min() / 1.5, n_all.max() * 1.5)  # also when every mean diverged (no point drawn)
-    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
-
-    ax.xaxis.set_major_locator(FixedLocator(sorted(set(n_all))))     # the dataset sizes run
-    ax.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
-    ax.xaxis.set_minor_formatter(NullFormatter())
-    ax.set_ylim(0, top * 1.05)
-    ax.set_xlabel("n_traj (trajectories in the dataset)")
-    ax.set_ylabel("mean cost on test instances")
-    ax.set_title(f"Fig. 1 — sample efficiency, {task}")
-    ax.legend(fontsize=8)
-    return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
-
-
-def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
-    """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
-    keep = []  # (load_runs gives every row an integer iteration)
-    for _, g in d.groupby(["method", "train_seed"], dropna=False):
-        common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
-        keep.append(g[g.t_a.isin(common)])
-    return pd.concat(keep) if keep else d
-
-
-def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    """Mean cost per loop iteration (policy; refined = TO warm-started by the policy, over its
-    converged solves; ArgminCost(refined, TO alone), drawn dotted beside them since it is <= TO
-    alone by construction; log scale, ∞ where the mean diverged) and the policy's success rate."""
-    d = df[df.task == task]
-    if d.empty:
-        return []
-    d = _loop_t_a(d)
-    rows = []
-    for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined"),
-                      ("argmin_cost_mean", "ArgminCost"), ("success_rate", "policy success rate")):
-        if col in d:
-            t = _agg(d, ["method", "iteration"], col)
-            t["curve"] = what
-            rows.append(t)
-    tab = pd.concat(rows, ignore_index=True)
-    plt = _plt()
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
-    costs = tab[tab.curve != "policy success rate"]
-    finite = costs["mean"][np.isfinite(costs["mean"]) & (costs["mean"] < DIVERGED)]
-    to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else np.nan
-    lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / 1.5
-    top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
-    methods = sorted(tab.method.unique())
-    for (method, curve), g in tab.groupby(["method", "curve"]):
-        g = g.sort_values("iteration")
-        ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
-        a = ax2 if curve == "policy success rate" else ax
-        # methods side by side around each iteration, so equal values (e.g. 0% success) stay visible
-        shift = 0.06 * (methods.index(method) - (len(methods) - 1) / 2)
-        a.errorbar(g["iteration"][ok] + shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0),
-                   marker=MARKERS.get(method, "o"), capsize=3, ls=CURVE_STYLES.get(curve, "-"),
-                   color=COLORS.get(method), mfc="white" if curve == "ArgminCost" else COLORS.get(method))
-        if a is ax:  # one ∞ per method and iteration, side by side
-            for it in g["iteration"][~ok]:
-                ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
-    if np.isfinite(to):
-        ax.axhline(to, color="black", ls="-.", lw=1)
-    # legends from explicit handles: colour and marker = method, line style = curve
-    from matplotlib.lines import Line2D
-
-    m_handles = [Line2D([], [], color=COLORS.get(m), marker=MARKERS.get(m, "o"), ls="-", label=m.upper())
-                 for m in methods]
-    c_handles = [Line2D([], [], color="0.3", ls=CURVE_STYLES[c], lw=1.6,
-                        label={"policy": "policy rollout", "refined": "refined (TO warm-started by the policy)",
-                               "ArgminCost": "ArgminCost(refined, TO alone)"}[c])
-                 for c in CURVE_STYLES if c in set(costs.curve)]
-    if np.isfinite(to):
-        c_handles.append(Line2D([], [], color="black", ls="-.", lw=1, label="TO alone (naive guess)"))
-    iters = sorted(int(i) for i in tab.iteration.unique())
-    for a in (ax, ax2):
-        a.set_xticks(iters)
-        a.set_xlabel("algorithm iteration")
-    ax.set_yscale("log")
-    ax.set_ylim(lo, top * 1.2)
-    _log_ticks(ax.yaxis, lo, top * 1.2)
-    ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
-    ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
-    first = ax.legend(handles=c_handles, fontsize=7, loc="upper right")
-    ax.add_artist(first)
-    ax.legend(handles=m_handles, fontsize=7, loc="lower left")
-    ax2.set_ylim(-0.03, 1.03)
-    ax2.set_ylabel("share of policy rollouts reaching the goal")
-    ax2.set_title("policy success rate", fontsize=10)
-    ax2.legend(handles=m_handles, fontsize=7)
-    fig.tight_layout()
-    return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
-
-
-def _refined_file(source: str, t_a) -> Path | None:
-    """The refine artifact of an evaluation row (loop layout: one per T_a; DVC layout: one)."""
-    p = Path(source)
-    for name in (f"refined_ta{int(t_a)}.npz" if pd.notna(t_a) else "", "refined.npz"):
-        if name and (p / name).is_file():
-            return p / name
-    return None
-
-
-def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
-    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess)."""
-    d = df[df.task == task]
-    if d.empty:
-        return []
-    last = _loop_t_a(d)
-    last = last[last.iteration == last.iteration.max()]
-    rows = []
-    for r in last.itertuples():
-        f = _refined_file(r.source, r.t_a)
-        if f is None:
-            continue
-        a, _ = load_npz(f, kind="dataset")
-        if "inst_pol_iterations" not in a:
-            continue
-        pi, bi = a["inst_pol_iterations"], a["inst_base_iterations"]
-        rows += [{"method": r.method, "guess": "policy", "iterations": int(v)} for v in pi[pi >= 0]]
-        rows += [{"method": r.method, "guess": "naive", "iterations": int(v)} for v in bi[bi >= 0]]
-    if not rows:
-        return []
-    tab = pd.DataFrame(rows)
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    hi = max(int(tab.iterations.max()), 1)
-    bins = np.unique(np.geomspace(1, hi + 1, 25).astype(int))
-    base = tab[tab.guess == "naive"]
-    # TO alone is the same solve for every method (same test instances): show it once
-    first = sorted(tab.method.unique())[0]
-    base = base[base.method == first].iterations
-    ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
-            label=f"TO alone (naive guess), mean {base.mean():.0f}")
-    for method, g in tab[tab.guess == "policy"].groupby("method"):
-        ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method),
-                label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
-    ax.set_xscale("log")
-    lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
-    ax.set_xlim(lo_x, hi_x)
-    _log_ticks(ax.xaxis, lo_x, hi_x)
-    ax.set_xlabel("TO iterations")
-    ax.set_ylabel("instances")
-    t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
-    ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
-    return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
-
-
-TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "policy cost (median)",
-           "success_rate": "policy success rate", "refined_cost_mean": "refined cost (TO warm-started by the policy)",
-           "refined_converged_rate": "refined converged", "argmin_cost_mean": "ArgminCost(refined, TO alone)",
-           "refined_iterations_mean": "TO iterations warm-started by the policy", "rollout_time_per_instance": "rollout time (s)",
-           "refined_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
-           "to_alone_cost_mean": "TO alone cost", "to_alone_iterations_mean": "TO alone iterations",
-           "to_alone_solve_time_mean": "TO alone time (s)"}
-
-
-def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    d = df[(df.task == task)].copy()
-    if d.empty or "refined_solve_time_mean" not in d:
-        return []
-    d = d[d.iteration == d.iteration.max()]
-    d = d[d.epochs == d.epochs.max()]
-    d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
-    cols = [c for c in TABLE2C if c in d]
-    tab = d.groupby(["method", "t_a"])[cols].mean().reset_index().sort_values(["method", "t_a"])
-    tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
-    return [_save_csv(tab, out / f"table2c_{task}.csv"),
-            _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration)")]
-
-
-def _best_rollout(d: pd.DataFrame):
-    """(rollout path, refine path) of the best evaluated row of ``d`` that has both files."""
-    d = d.sort_values(["success_rate", "policy_cost_median"], ascending=[False, True])
-    for row in d.itertuples():
-        rf = _refined_file(row.source, row.t_a)
-        ro = rf and rf.with_name(rf.name.replace("refined", "rollout"))
-        if rf is not None and ro.is_file():
-            return ro, rf
-    return None
-
-
-def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
-    """TO alone vs each method's policy and refined solution on a few test instances (the best
-    run of each method at the last iteration; the test instances are the same for all).
-
-    Pendulums: the tip in the y-z plane; UR5 and quadrotor seen from above (x-y) with the
-    columns; start (blue dot) and goal (red star) of each instance. TO alone and refined come
-    from the refine artifact's ``inst_base_X`` / ``inst_pol_X``.
-    """
-    from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
-    from sdp_cli.tasks import get_task
-
-    d = _loop_t_a(df[df.task == task_name])
-    d = d[d.iteration == d.iteration.max()]
-    found = {m: _best_rollout(g) for m, g in d.groupby("method")}
-    found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}
-    if not found:
-        return []
-    runs = {}
-    for m, (ro, rf) in sorted(found.items()):
-        r, rmeta = load_npz(ro, kind="rollout")
-        f, _ = load_npz(rf, kind="dataset")
-        runs[m] = (r, f, rmeta, ro)
-    r0, f0, meta0, _ = next(iter(runs.values()))
-    task = get_task(task_name, **(meta0.get("task_options") or {}))
-    top = task.nq > 2
-    ix, iy = (0, 1) if top else (1, 2)
-    plt = _plt()
-    n_show = min(n_show, len(r0["X"]))
-    fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), 3.6), squeeze=False)
-    for j, ax in enumerate(axes[0]):
-        xi = r0["xi"][j]
-        if top:
-            _draw_columns_top(ax, task)
-
-        def draw(X, label, **kw):
-            if np.all(np.isfinite(X)):
-                P = trajectory_points(task, X)
-                ax.plot(P[:, ix], P[:, iy], label=label, **kw)
-        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7)
-        for m, (r, f, _, _) in runs.items():
-            draw(r["X"][j], f"{m.upper()} policy", color=COLORS.get(m, "tab:orange"), lw=1.4)
-            draw(f["inst_pol_X"][j], f"refined from {m.upper()}", color=COLORS.get(m, "tab:orange"), lw=1.0,
-                 ls="--")
-        P0 = trajectory_points(task, task.initial_state(xi)[None])
-        ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
-        g = goal_point(task, xi)
-        if g is not None:
-            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
-        ax.set_title(f"test instance {j}", fontsize=9)
-        ax.set_xlabel("x (m)" if top else "y (m)")
-        ax.set_ylabel("y (m)" if top else "z (m)")
-        ax.set_aspect("equal", adjustable="datalim")
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
-    what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
-    its = ", ".join(f"{m.upper()} {v[3].parent.parent.parent.name}" for m, v in runs.items())
-    fig.suptitle(f"{task_name}: TO alone vs policy vs refined ({what}; {its})", fontsize=9)
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    return [_save_fig(fig, out / f"traj_{task_name}.png")]
-
-
-def timing(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    """``timing_<task>``: collection, training and evaluation seconds per run and iteration."""
-    from sdp_cli.report.timing import timing_table
-
-    tab = timing_table(df, task)
-    if tab.empty:
-        return []
-    return [_save_csv(tab, out / f"timing_{task}.csv"),
-            _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]
-
+from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
+                                    table2c, timing, trajectories)
+from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 
 def current_evaluations(experiment: str, params: Path = Path("params.yaml")) -> set[Path] | None:
     """The evaluation folders of ``experiment`` as ``params.yaml`` lists them (DVC layout), or None
@@ -385,7 +52,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     reported: outputs of stages that no longer exist (e.g. before the epochs were changed),
     which DVC leaves in place, are ignored (and counted in the log)."""
     runs, out = Path(runs), Path(out)
-    df = load_runs(runs)
+    df = load_runs(runs, log=log)
     current = current_evaluations(experiment or runs.name)
     if current is not None:
         keep = df.source.map(lambda s: Path(s).resolve() in current)
@@ -396,7 +63,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         if df.empty:
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
                            f"run `dvc repro` first")
-    written = [_save_csv(df.drop(columns=["source"]), out / "all_runs.csv")]
+    written = [_save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
     from sdp_cli.report.curves import loop_costs, training_curves
 
     for task in sorted(df.task.dropna().unique()):
@@ -460,7 +127,7 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
     revs = run_revisions(df)
     if not revs.empty:
-        lines += ["", "## Code revisions of the runs (from the rollout artifacts' provenance)", "",
+        lines += ["", "## Code revisions of the runs (from the evaluation manifests)", "",
                   "| task | method | iterations | revision |", "|---|---|---|---|"]
         for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
             its = ",".join(str(i) for i in sorted(g.iteration.unique()))

@@ -1,57 +1,57 @@
 """Gather the evaluation rows of every run under a folder into one tidy table.
 
-Both layouts are read: DVC experiments (``runs/<exp>/<run>/it<k>/eval/e<E>-ta<T>/eval.csv``)
-and ``sdp loop`` folders (``<out>/it<k>/eval/eval.csv``). Each row gets ``source`` (the CSV's
-folder, where the rollout/refined artifacts lie), ``run`` and ``iteration`` when the CSV
-did not carry them as tags.
+Evaluations are found through their manifests (``*.manifest.json``, written next to each
+``eval.csv`` by ``sdp evaluate`` and ``sdp loop``; :mod:`sdp_cli.evaluate`), whatever the
+folder layout: a DVC experiment or ``sdp loop`` folders. Each row gets, from its manifest,
+``run``, ``iteration``, ``git_rev`` and the absolute paths of the files it comes from
+(``rollouts``, ``refined``, ``policy``, ``data``), plus ``source`` (the manifest's folder);
+the report opens only those files. An ``eval.csv`` without a manifest is not read.
 """
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import read_evaluation
+from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, read_evaluation, read_manifest
 
-#: name of an iteration folder of a loop run, ``it<k>``
-ITERATION_DIR = re.compile(r"^it(\d+)$")
-
-
-def _run_and_iteration(csv: Path, root: Path) -> tuple[str, int | None]:
-    parts = csv.relative_to(root).parts
-    for i, p in enumerate(parts):
-        m = ITERATION_DIR.match(p)
-        if m:
-            return "/".join(parts[:i]) or root.name, int(m.group(1))
-    return "/".join(parts[:-1]) or root.name, None
+#: columns load_runs adds that hold paths on this machine (never written to committed tables)
+PATH_COLUMNS = ("source", *ARTIFACT_KEYS)
 
 
-def load_runs(root: str | Path) -> pd.DataFrame:
-    """All ``eval.csv`` rows under ``root`` (``SdpError`` if there are none)."""
+def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
+    """All evaluation rows under ``root`` that a manifest names (``SdpError`` if there are none)."""
     root = Path(root)
     if not root.is_dir():
         raise SdpError(f"runs folder not found: {root}")
     frames = []
-    for csv in sorted(root.rglob("eval.csv")):
+    for path in sorted(root.rglob("*" + MANIFEST_SUFFIX)):
+        man = read_manifest(path)
         try:
-            df = read_evaluation(csv)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
-            raise SdpError(f"corrupt evaluation file {csv}: {e}") from None
-        run, it = _run_and_iteration(csv, root)
-        df["source"] = str(csv.parent)
-        if "run" not in df:
-            df["run"] = run
-        if "iteration" not in df or df["iteration"].isna().all():
-            df["iteration"] = it if it is not None else 0
+            df = read_evaluation(man["eval"])
+        except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+            raise SdpError(f"corrupt evaluation file {man['eval']} (named by {path}): {e}") from None
+        entries = man["entries"]
+        if len(entries) != len(df):
+            raise SdpError(f"{path} describes {len(entries)} rows but {man['eval']} has {len(df)}")
+        for k in ("run", "iteration", *ARTIFACT_KEYS):
+            df[k] = [e.get(k) for e in entries]
+        df["run"] = df["run"].where(df["run"].notna(), path.parent.name)
+        df["iteration"] = df["iteration"].fillna(0).astype(int)
+        df["git_rev"] = man.get("git_rev", "unknown")
+        df["source"] = str(path.parent)
         frames.append(df)
+    unnamed = sum(1 for _ in root.rglob("eval.csv")) - len(frames)
+    if unnamed > 0:
+        log(f"ignoring {unnamed} eval.csv file(s) under {root} without a manifest (written before manifests "
+            "existed, or not by sdp): re-run their evaluation to include them")
     if not frames:
-        raise SdpError(f"no evaluation results (eval.csv) under {root}; run `sdp loop` or `dvc repro` first")
+        raise SdpError(f"no evaluation results (eval.csv with its manifest) under {root}; run `sdp loop` or "
+                       "`dvc repro` first")
     df = pd.concat(frames, ignore_index=True)
-    df["iteration"] = df["iteration"].astype(int)
     if "train_seed" in df:
         df["train_seed"] = df["train_seed"].fillna(0).astype(int)
     return df
@@ -72,15 +72,7 @@ def mean_ci(values: pd.Series) -> tuple[float, float, int]:
 
 
 def run_revisions(df: pd.DataFrame) -> pd.DataFrame:
-    """The code revision that wrote each evaluation's rollouts: ``(task, method, iteration, git_rev)``
-    rows, from the artifacts' provenance (a resumed loop may span several commits)."""
-    from sdp_cli.data.artifacts import load_npz
-
-    rows = []
-    for r in df.drop_duplicates("source").itertuples():
-        files = sorted(Path(r.source).glob("rollout*.npz"))
-        if files:
-            _, meta = load_npz(files[0], kind="rollout")
-            rows.append({"task": r.task, "method": r.method, "iteration": int(r.iteration),
-                         "git_rev": (meta.get("provenance") or {}).get("git_rev", "unknown")})
-    return pd.DataFrame(rows, columns=["task", "method", "iteration", "git_rev"])
+    """The code revision of each evaluation (from its manifest): ``(task, method, iteration, git_rev)``
+    rows (a resumed loop may span several commits)."""
+    cols = ["task", "method", "iteration", "git_rev"]
+    return df[cols].drop_duplicates().reset_index(drop=True) if len(df) else pd.DataFrame(columns=cols)
