@@ -160,7 +160,7 @@ def manifest_path(csv: str | os.PathLike) -> Path:
 def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None) -> Path:
     """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar, and the
     manifest of ``artifacts`` (one :func:`evaluation_artifacts` per row) next to it."""
-    from sdp_cli.data.artifacts import git_revision
+    from sdp_cli.data.artifacts import code_revision
 
     df = pd.DataFrame(rows)
     timed = [c for c in df.columns if is_timing_column(c)]
@@ -178,7 +178,7 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
                             "method": row.get("method"), "task": row.get("task"), "seed": row.get("train_seed"),
                             "t_a": row.get("t_a"), "epochs": row.get("epochs"), **rel})
         man = {"format": "sdp-evaluation-manifest", "format_version": 1, "eval": out.name,
-               "git_rev": git_revision(), "entries": entries}
+               "git_rev": code_revision(), "entries": entries}
         text = json.dumps(man, indent=1, default=_plain).encode()
         atomic_write_bytes(manifest_path(out), lambda f: f.write(text))
     return path

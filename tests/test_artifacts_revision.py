@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 
-from sdp_cli.data.artifacts import revision_of
+from sdp_cli.data.artifacts import code_revision_of, revision_of
 
 
 def _git(cwd, *args):
@@ -30,3 +30,23 @@ def test_outputs_are_not_modifications_but_code_is(tmp_path):
     assert revision_of(tmp_path) == rev + "+dirty"
     assert revision_of(tmp_path / "results" / "..").endswith("+dirty")
     assert revision_of(tmp_path.parent / "not-a-repo-xyz") == "unknown"
+
+
+def test_artifacts_record_the_last_commit_of_the_code(tmp_path):
+    """A commit of results or docs leaves the recorded revision (and so the artifacts' bytes) as it was;
+    a commit of the code changes it; uncommitted code is +dirty."""
+    (tmp_path / "sdp_cli").mkdir()
+    (tmp_path / "sdp_cli" / "m.py").write_text("x = 1\n")
+    (tmp_path / "README.md").write_text("a\n")
+    _git(tmp_path, "init", "-q")
+    _git(tmp_path, "add", "-A")
+    _git(tmp_path, "commit", "-q", "-m", "code")
+    rev = code_revision_of(tmp_path)
+    assert len(rev) == 40
+    (tmp_path / "README.md").write_text("b\n")
+    _git(tmp_path, "commit", "-q", "-am", "docs")
+    assert code_revision_of(tmp_path) == rev != revision_of(tmp_path)
+    (tmp_path / "sdp_cli" / "m.py").write_text("x = 2\n")
+    assert code_revision_of(tmp_path) == rev + "+dirty"
+    _git(tmp_path, "commit", "-q", "-am", "code 2")
+    assert code_revision_of(tmp_path) == revision_of(tmp_path) != rev

@@ -52,6 +52,31 @@ def git_revision() -> str:
     return revision_of(Path(__file__).resolve().parents[2])
 
 
+#: the paths whose content makes the code: an artifact records the last commit that changed them
+CODE_PATHS = ("sdp_cli", "pyproject.toml")
+
+
+@functools.cache
+def code_revision() -> str:
+    """The last commit that changed the code (``CODE_PATHS``), with ``+dirty`` when they hold
+    uncommitted changes, or ``unknown``: what artifacts and manifests record, so that a commit of
+    results, docs or tests does not change an artifact's bytes (a DVC re-run at a later commit with
+    the same code writes the same files), while any code change does."""
+    return code_revision_of(Path(__file__).resolve().parents[2])
+
+
+def code_revision_of(root: Path) -> str:
+    """:func:`code_revision` of the git work tree at ``root``."""
+    try:
+        rev = subprocess.run(["git", "log", "-1", "--format=%H", "--", *CODE_PATHS], cwd=root,
+                             capture_output=True, text=True, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS],
+                               cwd=root, capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev or "unknown") + ("+dirty" if dirty and rev else "")
+
+
 def revision_of(root: Path) -> str:
     """:func:`git_revision` of the git work tree at ``root``."""
     try:
@@ -67,14 +92,15 @@ def revision_of(root: Path) -> str:
 
 @functools.cache
 def provenance() -> dict[str, Any]:
-    """Package versions, git revision and platform, recorded inside every artifact."""
+    """Package versions, git revision of the code (:func:`code_revision`) and platform, recorded
+    inside every artifact."""
     versions = {}
     for pkg in _PACKAGES:
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
-    return {"versions": versions, "git_rev": git_revision(), "python": platform.python_version(),
+    return {"versions": versions, "git_rev": code_revision(), "python": platform.python_version(),
             "platform": platform.platform(), "cpu_model": _cpu_model()}
 
 
