@@ -85,6 +85,14 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
+def _method_help() -> str:
+    from sdp_cli.policy.registry import get_method, method_names
+
+    return "; ".join(f"{m} ({get_method(m).description})" if get_method(m).description else m
+                     for m in method_names()) + "."
+
+
+_METHOD_HELP = _method_help()
 _EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
                   "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
 _SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
@@ -236,7 +244,7 @@ def plot_dataset_cmd(
 @clean_errors
 def train_cmd(
     data: Annotated[Path, typer.Option(help="Dataset artifact from `sdp collect` or `sdp refine`.")],
-    method: Annotated[str, typer.Option(help="sdp, dp, pddp or pddp_s.")],
+    method: Annotated[str, typer.Option(help=_METHOD_HELP)],
     epochs: Annotated[int, typer.Option(help="Epochs: |D|(T-T_h)/T_h chunks (diffusion) or |D|T pairs (MLP).")],
     out: Annotated[Path, typer.Option(help="Run folder: checkpoint.pt, epoch_<E>.pt, metrics.csv.")],
     seed: Annotated[int, typer.Option(help="Seed of initialization, batches, noise and projections.")] = 0,
@@ -295,7 +303,7 @@ def _int_list(value: Optional[str], name: str) -> tuple:
 @clean_errors
 def loop_cmd(
     task: Annotated[str, typer.Option(help=_task_help())],
-    method: Annotated[str, typer.Option(help="sdp, dp, pddp or pddp_s.")],
+    method: Annotated[str, typer.Option(help=_METHOD_HELP)],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
     n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
     n_traj: Annotated[str, typer.Option("--n-traj", help="Trajectories per iteration, e.g. 30 or 30,30,60 (last repeats).")] = "30",

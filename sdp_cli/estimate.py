@@ -32,6 +32,7 @@ import pandas as pd
 import torch
 
 from sdp_cli.errors import SdpError
+from sdp_cli.policy.registry import get_method
 
 #: seconds per solve from the naive guess, (fatrop multiple shooting, ipopt single shooting):
 #: means of results/tasks/TO_alone.md; quadrotor-1/-3 use quadrotor-9's (an upper bound)
@@ -87,7 +88,6 @@ def _run_of(key: str) -> tuple[str, int]:
 def training_stages(stages: dict) -> list[TrainStage]:
     """One :class:`TrainStage` per training stage of an expanded experiment, with its sizes."""
     from sdp_cli.data.sampling import steps_per_epoch
-    from sdp_cli.policy.config import DIFFUSION_METHODS
     from sdp_cli.tasks import get_task
 
     colls = {**stages["collect_first"], **stages["collect_next"]}
@@ -100,7 +100,7 @@ def training_stages(stages: dict) -> list[TrainStage]:
         task = get_task(coll["task"])
         st = TrainStage(run, it, coll["task"], tr["method"], int(tr["horizon"]), int(coll["n_traj"]),
                         int(tr["epochs"]), int(o.get("batch_size", 256)), o.get("action"), tr["data"])
-        if st.method in DIFFUSION_METHODS:
+        if get_method(st.method).family.chunked:
             st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
         else:
             st.E = st.n_traj * task.T
@@ -113,7 +113,7 @@ def training_stages(stages: dict) -> list[TrainStage]:
 def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Generator, device) -> dict:
     r = lambda *s: (torch.rand(*s, generator=gen) * 2 - 1).to(device)
     A, n_o, n_xi, ndx = dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"]
-    if method in ("sdp", "dp"):
+    if get_method(method).family.chunked:
         b = {"tau0": r(B, T_h, A), "obs": r(B, 1, n_o), "obs_jac": r(B, 1, n_o, ndx), "xi": r(B, n_xi),
              "jac": r(B, T_h, A, ndx)}
         b["a_hist"] = b["tau0"][:, :1]
@@ -235,7 +235,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
         r["to_s"] += 2 * ev["n_test"] * ms + (2 * ev["n_test"] * ss if ev["refine_opts"] else 0.0)
         st = next(s for s in train if s.run == run)
         t_a = int(ev["t_a"].split()[-1]) if ev["t_a"] else max(1, st.T_h - 1)
-        calls = (math.ceil(task.T / t_a) * 5) if st.method in ("sdp", "dp") else task.T
+        calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).family.chunked else task.T
         fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(ev["n_test"], st.B)) / 3
         r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))

@@ -29,7 +29,7 @@ from typing import Callable
 
 import torch
 
-from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset, task_options_of
+from sdp_cli.data.chunks import fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, save_timing
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
@@ -56,13 +56,8 @@ def resolve_device(device: str) -> torch.device:
 
 
 def make_loss(cfg: TrainConfig, scheduler=None, sobolev_scale: float = 1.0) -> Callable:
-    """``loss_fn(net, batch, generator) -> (loss, parts)`` for ``cfg.method``."""
-    if cfg.is_diffusion:
-        from sdp_cli.policy.diffusion import diffusion_loss
-        return lambda net, b, g: diffusion_loss(net, scheduler, b, cfg, g, sobolev=cfg.sobolev,
-                                                sobolev_scale=sobolev_scale)
-    from sdp_cli.policy.mlp import mlp_loss
-    return lambda net, b, g: mlp_loss(net, b, cfg, g, sobolev=cfg.sobolev, sobolev_scale=sobolev_scale)
+    """``loss_fn(net, batch, generator) -> (loss, parts)`` for ``cfg.method`` (its family's loss)."""
+    return cfg.family.loss(cfg, scheduler, cfg.sobolev, sobolev_scale)
 
 
 def sobolev_scale_of(cfg: TrainConfig, tensors: dict) -> float:
@@ -71,32 +66,20 @@ def sobolev_scale_of(cfg: TrainConfig, tensors: dict) -> float:
         return 1.0
     from sdp_cli.losses.sobolev import balance_scale
 
-    if cfg.is_diffusion:
-        return balance_scale(tensors["tau0"][:, cfg.T_o:], tensors["jac"][:, cfg.T_o:])
-    return balance_scale(tensors["u"], tensors["jac"])
+    return balance_scale(*cfg.family.balance_terms(cfg, tensors))
 
 
 def policy_dims(cfg: TrainConfig, task, action: str) -> dict:
     """Network sizes: action, observation (``(obs(x), u_prev)`` for diffusion, ``obs(x)`` for the MLPs),
     ``xi`` and state tangent."""
-    if cfg.is_diffusion:
-        from sdp_cli.data.chunks import task_with_action
-
-        return {"n_action": task_with_action(task, action).n_action, "n_obs": task.n_obs + task.nu,
-                "n_xi": task.n_xi, "ndx": task.ndx}
-    return {"n_action": task.nu, "n_obs": task.n_obs, "n_xi": task.n_xi, "ndx": task.ndx}
+    return cfg.family.dims(cfg, task, action)
 
 
 def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen: bool = False):
     """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer;
     ``widen``: the given normalizer's ranges are extended to cover this dataset (``--init``)."""
     with_jac = cfg.sobolev
-    if cfg.is_diffusion:
-        action = cfg.action or task.action
-        ds = ChunkDataset(task, arrays, cfg.T_h, cfg.T_o, action, with_jacobians=with_jac)
-    else:
-        action = "u"
-        ds = PairDataset(task, arrays, with_jacobians=with_jac)
+    ds, action = cfg.family.dataset(cfg, task, arrays, with_jac)
     dims = policy_dims(cfg, task, action)
     net = build_net(cfg, dims)
     norm = fit_normalizer(task, arrays, action) if normalizer is None or widen else normalizer
@@ -215,10 +198,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         wall0 = float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
         rows = _read_metrics(out / "metrics.csv", step)
 
-    scheduler = None
-    if cfg.is_diffusion:
-        from sdp_cli.policy.diffusion import make_scheduler
-        scheduler = make_scheduler(cfg)
+    scheduler = cfg.family.scheduler(cfg)
     loss_fn = make_loss(cfg, scheduler, sob_scale)
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,

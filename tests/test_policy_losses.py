@@ -123,5 +123,5 @@ def test_sobolev_cap_is_validated():
 
     with pytest.raises(SdpError, match="sobolev_cap is a quantile in \\(0, 1\\], got 1.5"):
         TrainConfig(method="sdp", sobolev_cap=1.5)
-    with pytest.raises(SdpError, match="sobolev_cap applies to method sdp, not 'dp'"):
+    with pytest.raises(SdpError, match="sobolev_cap applies to Sobolev diffusion methods \\(sdp\\), not 'dp'"):
         TrainConfig(method="dp", sobolev_cap=0.9)

@@ -24,7 +24,18 @@ The observation fed to the network is ``o_t = (task.observation(x_t), u_{t-1})``
 by the normalizer stored in the checkpoint (:mod:`sdp_cli.data.normalizer`).
 """
 
-from sdp_cli.policy.api import DiffusionPolicy, MLPPolicy, Policy, load_policy
-from sdp_cli.policy.config import METHODS, TrainConfig
+from sdp_cli.policy import families as _families  # noqa: F401 (registers the built-in methods first)
+from sdp_cli.policy.registry import MethodFamily, get_method, method_names, register_method
 
-__all__ = ["load_policy", "Policy", "DiffusionPolicy", "MLPPolicy", "TrainConfig", "METHODS"]
+__all__ = ["load_policy", "Policy", "DiffusionPolicy", "MLPPolicy", "TrainConfig", "MethodFamily", "get_method",
+           "method_names", "register_method"]
+_LAZY = {"load_policy": "sdp_cli.policy.api", "Policy": "sdp_cli.policy.api", "DiffusionPolicy": "sdp_cli.policy.api",
+         "MLPPolicy": "sdp_cli.policy.api", "TrainConfig": "sdp_cli.policy.config"}
+
+
+def __getattr__(name):   # torch is imported when a policy is used, not when the registry is read (CLI start-up)
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'sdp_cli.policy' has no attribute {name!r}")

@@ -108,5 +108,5 @@ class MLPPolicy(Policy):
 def load_policy(path, device="cpu", use_ema: bool = True) -> DiffusionPolicy | MLPPolicy:
     """Load a trained policy from a checkpoint file or a run folder (``checkpoint.pt``)."""
     ck = load_checkpoint(path, map_location=device)
-    cfg = TrainConfig.from_dict(ck["config"])
-    return (DiffusionPolicy if cfg.is_diffusion else MLPPolicy)(ck, device, use_ema)
+    chunked = TrainConfig.from_dict(ck["config"]).family.chunked   # the method's family, from the registry
+    return (DiffusionPolicy if chunked else MLPPolicy)(ck, device, use_ema)

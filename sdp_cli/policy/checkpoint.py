@@ -61,12 +61,8 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
 
 
 def build_net(cfg: TrainConfig, dims: dict):
-    """A fresh network of the right family for ``cfg.method``."""
-    if cfg.is_diffusion:
-        from sdp_cli.policy.diffusion import DiffusionNet
-        return DiffusionNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
-    from sdp_cli.policy.mlp import MLPNet
-    return MLPNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
+    """A fresh network of ``cfg.method``'s family (:mod:`sdp_cli.policy.registry`)."""
+    return cfg.family.build_net(cfg, dims)
 
 
 def net_from_checkpoint(ck: dict, use_ema: bool = True):

@@ -6,9 +6,6 @@ from dataclasses import asdict, dataclass, field, fields
 
 from sdp_cli.errors import SdpError
 
-METHODS = ("sdp", "dp", "pddp", "pddp_s")
-DIFFUSION_METHODS = ("sdp", "dp")
-SOBOLEV_METHODS = ("sdp", "pddp_s")
 SOBOLEV_MODES = ("jvp", "vjp")
 SOBOLEV_PATHS = ("cond", "total")
 
@@ -57,8 +54,9 @@ class TrainConfig:
     checkpoint_every_s: float = 60.0
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise SdpError(f"method must be one of {', '.join(METHODS)}; got {self.method!r}")
+        from sdp_cli.policy.registry import get_method
+
+        get_method(self.method)   # a registered method (sdp_cli.policy.registry), else one clear error
         if self.sobolev_mode not in SOBOLEV_MODES:
             raise SdpError(f"sobolev mode must be one of {', '.join(SOBOLEV_MODES)}; got {self.sobolev_mode!r}")
         for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
@@ -86,15 +84,15 @@ class TrainConfig:
             raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
         if self.sobolev_path not in SOBOLEV_PATHS:
             raise SdpError(f"sobolev path must be one of {', '.join(SOBOLEV_PATHS)}; got {self.sobolev_path!r}")
-        if self.sobolev_path == "total" and self.method != "sdp":
-            raise SdpError(f"sobolev_path 'total' applies to method sdp, not {self.method!r}")
+        if self.sobolev_path == "total" and not (self.is_diffusion and self.sobolev):
+            raise SdpError(f"sobolev_path 'total' applies to Sobolev diffusion methods (sdp), not {self.method!r}")
         if self.alpha_sobolev is not None and not 0 <= self.alpha_sobolev < float("inf"):
             raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
         if self.sobolev_cap is not None:
             if not 0 < self.sobolev_cap <= 1:
                 raise SdpError(f"sobolev_cap is a quantile in (0, 1], got {self.sobolev_cap}")
-            if self.method != "sdp":
-                raise SdpError(f"sobolev_cap applies to method sdp, not {self.method!r}")
+            if not (self.is_diffusion and self.sobolev):
+                raise SdpError(f"sobolev_cap applies to Sobolev diffusion methods (sdp), not {self.method!r}")
         if self.is_diffusion:
             levels = len(self.down_dims)
             if self.T_h % (2 ** (levels - 1)):
@@ -109,8 +107,16 @@ class TrainConfig:
         self.save_at = sorted(int(e) for e in self.save_at)
 
     @property
+    def family(self):
+        """The method's family (:mod:`sdp_cli.policy.registry`): data, network, loss, policy."""
+        from sdp_cli.policy.registry import get_method
+
+        return get_method(self.method).family
+
+    @property
     def is_diffusion(self) -> bool:
-        return self.method in DIFFUSION_METHODS
+        """A chunked (diffusion) method: plans action chunks, Algorithm 2."""
+        return self.family.chunked
 
     @property
     def sobolev_weight(self) -> float:
@@ -119,7 +125,9 @@ class TrainConfig:
 
     @property
     def sobolev(self) -> bool:
-        return self.method in SOBOLEV_METHODS
+        from sdp_cli.policy.registry import get_method
+
+        return get_method(self.method).sobolev
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -19,6 +19,8 @@ Sobolev term needs (values at ``delta = 0`` are the data).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from diffusers.utils.torch_utils import randn_tensor
@@ -27,7 +29,8 @@ from torch import nn
 
 from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.losses.sobolev import sobolev_term
-from sdp_cli.policy.config import TrainConfig
+if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
+    from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.unet import ConditionalUnet1D
 
 

@@ -8,12 +8,15 @@ scope here: the optimizer-side coupling is the alternating loop's warm start.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.losses.sobolev import sobolev_term
-from sdp_cli.policy.config import TrainConfig
+if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
+    from sdp_cli.policy.config import TrainConfig
 
 
 class MLPNet(nn.Module):
