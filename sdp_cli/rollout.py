@@ -67,9 +67,7 @@ def evaluation_xis(task: Task, n: int, seed: int) -> np.ndarray:
 
 def step_batch(task: Task, X: np.ndarray, U: np.ndarray) -> np.ndarray:
     """One dynamics step for a batch: ``X (B, nx)``, ``U (B, nu)`` -> ``(B, nx)``."""
-    if not hasattr(task, "_sdp_step_map") or task._sdp_step_map[0] != len(X):
-        task._sdp_step_map = (len(X), task.f_step.map(len(X)))
-    return task._sdp_step_map[1](X.T, U.T).full().T
+    return task.step_map(len(X))(X.T, U.T).full().T
 
 
 def instance_generators(seed: int, indices, device="cpu") -> list[torch.Generator]:

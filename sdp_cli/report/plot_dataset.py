@@ -23,35 +23,24 @@ _FORMATS = {".png", ".pdf", ".svg", ".jpg", ".jpeg"}
 
 
 def trajectory_points(task, X: np.ndarray) -> np.ndarray:
-    """3D points of one trajectory: (T+1, nx) -> (T+1, 3)."""
-    if hasattr(task, "path_points"):
-        return np.asarray(task.path_points(X), dtype=float)
-    import pinocchio as pin
-
-    fid = task.model.nframes - 1
-    out = np.empty((len(X), 3))
-    for t, x in enumerate(X):
-        pin.framesForwardKinematics(task.model, task.data, np.asarray(x[: task.nq], dtype=float))
-        out[t] = task.data.oMf[fid].translation
-    return out
+    """3D points of one trajectory: (T+1, nx) -> (T+1, 3) (:meth:`Task.path_points`)."""
+    return np.asarray(task.path_points(X), dtype=float)
 
 
 def goal_point(task, xi: np.ndarray) -> np.ndarray | None:
-    """The goal position (3,) of instance ``xi``, if the task has one."""
-    if hasattr(task, "target"):
-        return np.asarray(task.target(xi), dtype=float)
-    goal = getattr(task, "goal", None)
-    return None if goal is None else np.asarray(goal, dtype=float)
+    """The goal position (3,) of instance ``xi``, if the task has one (:meth:`Task.goal_point`)."""
+    g = task.goal_point(xi)
+    return None if g is None else np.asarray(g, dtype=float)
 
 
 def _draw_columns(ax, task, zlim) -> None:
-    cols = np.asarray(getattr(task, "columns", np.zeros((0, 3))))
+    cols = np.asarray(task.columns).reshape(-1, 3)
     if not len(cols):
         return
     z0, z1 = zlim
     th = np.linspace(0, 2 * np.pi, 40)
     zz = np.array([z0, z1])
-    r_quad = float(getattr(task, "r_quad", 0.0))
+    r_quad = float(task.column_margin)
     for cx, cy, r in cols:
         TH, ZZ = np.meshgrid(th, zz)
         ax.plot_surface(cx + r * np.cos(TH), cy + r * np.sin(TH), ZZ, color="0.45", alpha=0.35,
@@ -64,8 +53,8 @@ def _draw_columns(ax, task, zlim) -> None:
 def _draw_columns_top(ax, task) -> None:
     import matplotlib.patches as mpatches
 
-    r_quad = float(getattr(task, "r_quad", 0.0))
-    for k, (cx, cy, r) in enumerate(np.asarray(getattr(task, "columns", np.zeros((0, 3))))):
+    r_quad = float(task.column_margin)
+    for k, (cx, cy, r) in enumerate(np.asarray(task.columns).reshape(-1, 3)):
         ax.add_patch(mpatches.Circle((cx, cy), r, color="0.45", alpha=0.5, lw=0, label="column" if k == 0 else None))
         if r_quad:
             ax.add_patch(mpatches.Circle((cx, cy), r + r_quad, fill=False, ls="--", color="0.5", lw=0.8,
@@ -103,7 +92,7 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     goals = [goal_point(task, XI[i]) for i in range(n)]
     pts = np.concatenate(paths + [g[None] for g in goals if g is not None])
     lo, hi = pts.min(0), pts.max(0)
-    zlim = getattr(task, "z_bounds", None)
+    zlim = task.z_bounds
     if zlim is not None:
         lo[2], hi[2] = min(lo[2], zlim[0]), max(hi[2], zlim[1])
 
@@ -123,11 +112,11 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     _draw_columns_top(top, task)
     if zlim is not None:
         _draw_columns(ax, task, zlim)
-        cols = np.asarray(getattr(task, "columns", np.zeros((0, 3))))
+        cols = np.asarray(task.columns).reshape(-1, 3)
         if len(cols):
             lo[:2] = np.minimum(lo[:2], (cols[:, :2] - cols[:, 2:]).min(0))
             hi[:2] = np.maximum(hi[:2], (cols[:, :2] + cols[:, 2:]).max(0))
-    if hasattr(task, "base_marker"):
+    if task.base_marker is not None:
         b = np.asarray(task.base_marker, dtype=float)
         lo, hi = np.minimum(lo, b), np.maximum(hi, b)     # the base is drawn inside the axes
         ax.scatter(*b, color="k", marker="s", s=30, depthshade=False, label="robot base")

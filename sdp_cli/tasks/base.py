@@ -13,7 +13,15 @@ A task owns
 - the discrete dynamics: semi-implicit Euler ``v+ = v + dt aba(q, v, u)``,
   ``q+ = integrate(q, dt v+)``, identical in the optimizer (casadi) and in numerical
   simulation (Pinocchio), so that RNEA inverts a step exactly;
-- the policy conventions (action variable, observation map), used by the learning side.
+- the policy conventions (action variable, observation map), used by the learning side;
+- a scene for plots: where the robot's path goes (:meth:`Task.path_points`), the goal
+  (:meth:`Task.goal_point`), obstacles (``columns``, ``column_margin``), ``z_bounds``, ``base_marker``.
+
+The contract every registered task meets is checked by ``tests/test_task_contract.py``
+(casadi step vs Pinocchio, observation and action Jacobians vs finite differences on the
+manifold, the controls-from-action round trip of every accepted action, a short rollout,
+the scene); adding a task is one module plus :func:`sdp_cli.tasks.register`, as the toy task
+of that test shows.
 
 Gains and state Jacobians live in the tangent space: ``K_t (nu, ndx)``,
 ``dx_{t+1}/dx_t (ndx, ndx)``, with perturbations applied through :meth:`Task.integrate`.
@@ -55,10 +63,23 @@ class Task(ABC):
     #: name of the compiled optimizer library; variants whose OCPs are the same casadi
     #: functions (they differ only in how xi is sampled) share one (default: ``name``)
     compile_family: str | None = None
+    #: actuation ``tau = S u`` (nv, nu), the one definition used by casadi and numpy; None: identity
+    actuation: np.ndarray | None = None
+
+    # scene drawn by the plots (``sdp plot-dataset``, the report's trajectories)
+    #: vertical columns (k, 3) of (cx, cy, radius), m
+    columns: np.ndarray = np.zeros((0, 3))
+    #: margin the state constraint adds around each column (m), drawn dashed
+    column_margin: float = 0.0
+    #: (z_min, z_max) of the workspace, or None
+    z_bounds: tuple | None = None
+    #: a fixed point drawn as the robot's base, or None
+    base_marker: tuple | None = None
 
     def __init__(self) -> None:
         self.data = self.model.createData()
         self.cmodel = CasadiModel(self.model)
+        self._step_maps: dict[int, ca.Function] = {}
 
     # ------------------------------------------------------------ dimensions
     @property
@@ -135,8 +156,8 @@ class Task(ABC):
         return ca.SX.zeros(0, 1)
 
     def _control_to_tau(self, u):
-        """Generalized forces from controls (identity for fully actuated arms)."""
-        return u
+        """Generalized forces from controls, casadi: ``S u`` (:attr:`actuation`)."""
+        return u if self.actuation is None else ca.mtimes(ca.DM(self.actuation), u)
 
     def _symbols(self):
         return ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("xi", self.n_xi)
@@ -182,8 +203,15 @@ class Task(ABC):
         return np.concatenate([pin.integrate(self.model, q, self.dt * v_next), v_next])
 
     def control_to_tau(self, u: np.ndarray) -> np.ndarray:
-        """Numerical counterpart of :meth:`_control_to_tau`."""
-        return np.asarray(u, dtype=float)
+        """Generalized forces from controls, numpy: ``S u`` (..., nu) -> (..., nv)."""
+        u = np.asarray(u, dtype=float)
+        return u.copy() if self.actuation is None else u @ np.asarray(self.actuation).T
+
+    def step_map(self, n: int) -> ca.Function:
+        """:attr:`f_step` mapped over ``n`` states (batched simulation), built once per size."""
+        if n not in self._step_maps:
+            self._step_maps[n] = self.f_step.map(n)
+        return self._step_maps[n]
 
     def simulate(self, x0: np.ndarray, U: np.ndarray) -> np.ndarray:
         """Roll the dynamics out open-loop: ``X (len(U)+1, nx)``."""
@@ -308,6 +336,19 @@ class Task(ABC):
 
     #: goal distance under which a rollout counts as having reached the goal (m)
     goal_tolerance: float = 0.05
+
+    def path_points(self, X: np.ndarray) -> np.ndarray:
+        """3D points of a trajectory for plots: (T+1, nx) -> (T+1, 3). Default: the last frame."""
+        fid = self.model.nframes - 1
+        out = np.empty((len(X), 3))
+        for t, x in enumerate(np.asarray(X, dtype=float)):
+            pin.framesForwardKinematics(self.model, self.data, x[: self.nq])
+            out[t] = self.data.oMf[fid].translation
+        return out
+
+    def goal_point(self, xi: np.ndarray) -> np.ndarray | None:
+        """The goal position (3,) of instance ``xi`` for plots, or None."""
+        return None
 
     def goal_distance(self, x: np.ndarray, xi: np.ndarray) -> float:
         """Distance of state ``x`` (nx,) to the task's goal (m): the ``reached`` flag of rollouts."""

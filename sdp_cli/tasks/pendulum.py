@@ -78,6 +78,7 @@ class PendulumTask(Task):
         self.nu = len(actuated)
         self.S = np.zeros((self.nv, self.nu))  # tau = S u
         self.S[list(actuated), range(self.nu)] = 1.0
+        self.actuation = None if self.nu == self.nv else self.S
         self.n_xi = self.nx
         self.u_lb, self.u_ub = -U_MAX * np.ones(self.nu), U_MAX * np.ones(self.nu)
         self.tip = self.model.getFrameId(EE_FRAME)
@@ -90,11 +91,9 @@ class PendulumTask(Task):
             out["actuated"] = list(self.actuated)
         return out
 
-    def _control_to_tau(self, u):
-        return u if self.nu == self.nv else ca.mtimes(ca.DM(self.S), u)
-
-    def control_to_tau(self, u: np.ndarray) -> np.ndarray:
-        return self.S @ np.asarray(u, dtype=float)
+    def goal_point(self, xi: np.ndarray) -> np.ndarray:
+        """The upright tip position (3,), the same for every instance."""
+        return self.goal.copy()
 
     def sample_xi(self, rng: np.random.Generator) -> np.ndarray:
         q0 = rng.uniform(-self.init_spread, self.init_spread, self.nq)

@@ -153,6 +153,7 @@ class QuadrotorTask(Task):
         self.u_hover = np.full(4, self.mass * -self.model.gravity.linear[2] / 4)
         self.q_ref = pin.neutral(self.model)
         self.r_quad, self.z_bounds = R_QUAD, (Z_FLOOR, Z_CEIL)
+        self.column_margin, self.actuation = R_QUAD, ALLOC
 
     def params(self) -> dict:
         return {**super().params(), "n_obstacles": self.n_obstacles, "columns": self.columns.tolist(),
@@ -196,6 +197,8 @@ class QuadrotorTask(Task):
         """Goal position (3,)."""
         return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
 
+    goal_point = target
+
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """Base positions along a trajectory: (T+1, 13) -> (T+1, 3)."""
         return np.asarray(X, dtype=float)[:, :3].copy()
@@ -216,12 +219,6 @@ class QuadrotorTask(Task):
         return np.hstack([P, Quat, V]), np.repeat(self.u_hover[None], self.T, 0)
 
     # ------------------------------------------------------------ symbolic problem
-    def _control_to_tau(self, u):
-        return ca.mtimes(ca.DM(ALLOC), u)
-
-    def control_to_tau(self, u: np.ndarray) -> np.ndarray:
-        return ALLOC @ np.asarray(u, dtype=float)
-
     def _state_cost(self, x, xi):
         """1/2 (W_P ||p - p_goal||^2 + W_ROT ||r||^2 + W_V ||v||^2) with r = 2 (qx, qy, qz), which equals
         log3(R) to first order (aligator's state error residual on SO(3)) and is smooth everywhere."""

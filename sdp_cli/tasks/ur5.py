@@ -126,6 +126,8 @@ class Ur5Task(Task):
     def target(self, xi: np.ndarray) -> np.ndarray:
         return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
 
+    goal_point = target
+
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """tool0 positions along a trajectory: (T+1, 12) -> (T+1, 3)."""
         return np.array([self.ee_position_np(x[: self.nq]) for x in np.asarray(X, dtype=float)])
