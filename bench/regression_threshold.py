@@ -19,8 +19,8 @@ the worst working run and the best broken one, if the two are separated, and a t
 final training Sobolev error (its second check, which catches alpha_Sobolev = 0). Whoever changes a task or the training re-runs this script and
 updates the test's constants and docstring with its output. Runs are independent processes with
 one torch thread each unless --threads says otherwise; ``--jobs`` run at the same time.
-``sdp loop`` collects iteration 1 with seed 1000 * seed + 1 where the DVC pipeline uses seed + 1:
-the test's `dvc repro` run is one more draw from the same distribution.
+``dvc repro`` runs the same ``sdp loop`` (the DVC stage ``group``), so the test's run is this script's
+seed 0 on 1 thread.
 """
 
 from __future__ import annotations

@@ -365,11 +365,12 @@ def pipeline_cmd(
     run: Annotated[bool, typer.Option("--run", help="Run every run of the experiment now (each an `sdp loop` in OUT/<run>/), in parallel on the executor; resumable. This is what the DVC stage `group` runs.")] = False,
     out: Annotated[Optional[Path], typer.Option(help="--run: folder of the runs (default runs/<experiment>).")] = None,
     only: Annotated[Optional[str], typer.Option(help="--run: comma-separated run names to run (default all).")] = None,
+    restart_changed: Annotated[bool, typer.Option("--restart-changed", help="--run: start over a run whose folder holds other settings (the experiment file changed) instead of refusing; what the DVC stage does.")] = False,
     workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
     executor: Annotated[Optional[str], typer.Option(help="--run: local (process pool; default $SDP_EXECUTOR, else local) or dask.")] = None,
     scheduler: Annotated[Optional[str], typer.Option(help="--run: address of a running Dask scheduler (default $SDP_SCHEDULER).")] = None,
 ) -> None:
-    """Select the experiment that `dvc repro` runs (expands pipelines/<name>.yaml into params.yaml)."""
+    """Select the experiment that `dvc repro` runs (pipelines/<name>.yaml, written into params.yaml), or run it (--run)."""
     from sdp_cli.pipeline import select_experiment
 
     if estimate and run:
@@ -385,7 +386,8 @@ def pipeline_cmd(
 
         names = [s for s in (only or "").split(",") if s] or None
         summary = run_group(experiment, out or Path("runs") / experiment, executor=executor, workers=workers,
-                            scheduler=scheduler, only=names, log=lambda s: typer.echo(s, err=True))
+                            scheduler=scheduler, only=names, restart_changed=restart_changed,
+                            log=lambda s: typer.echo(s, err=True))
         cols = [c for c in ("run", "iteration", "epochs", "t_a", "policy_cost_mean", "success_rate",
                             "refined_cost_mean", "to_alone_cost_mean") if c in summary]
         typer.echo(summary[cols].to_string(index=False) if len(summary) else "no runs")

@@ -7,7 +7,8 @@ Per run (one task x method x seed x n_traj of the experiment, all its iterations
   ``sdp train`` runs them (:mod:`sdp_cli.data.sampling`); the time per step is **measured** on this
   machine (one torch thread, the real loss, backward, clipping, AdamW and EMA on a batch of the
   task's shapes), at the smallest and largest batch the experiment uses, linear in between;
-- trajectory optimization: collection (``n_traj`` solves per iteration), the test-set refinements
+- trajectory optimization: collection (``n_traj`` solves at iteration 0, ``2 n_traj`` after: from
+  the policy's guess and from the naive guess, ArgminCost), the test-set refinements
   (two solves per test instance: from the policy's guess and alone, four with
   ``single_shooting``); per-solve times are reference means from ``results/tasks/TO_alone.md``
   (fatrop multiple shooting and ipopt single shooting from the naive guess, 2-core x86_64), not
@@ -51,18 +52,6 @@ def to_reference(task: str) -> tuple[float, float]:
     return TO_REFERENCE_S["double_pendulum"]
 
 
-def _opts(s: str) -> dict:
-    """``"--batch-size 128 --lr 0.001"`` -> {"batch_size": "128", "lr": "0.001"} (switches map to "")."""
-    toks, out, i = s.split(), {}, 0
-    while i < len(toks):
-        key = toks[i].lstrip("-").replace("-", "_")
-        if i + 1 < len(toks) and not toks[i + 1].startswith("--"):
-            out[key], i = toks[i + 1], i + 2
-        else:
-            out[key], i = "", i + 1
-    return out
-
-
 @dataclass
 class TrainStage:
     run: str
@@ -80,33 +69,26 @@ class TrainStage:
     steps: int = 0
 
 
-def _run_of(key: str) -> tuple[str, int]:
-    run, it = key.rsplit("-it", 1)
-    return run, int(it)
-
-
-def training_stages(stages: dict) -> list[TrainStage]:
-    """One :class:`TrainStage` per training stage of an expanded experiment, with its sizes."""
+def training_stages(runs: dict) -> list[TrainStage]:
+    """One :class:`TrainStage` per run and iteration of an experiment (``{run: LoopConfig}``, from
+    :func:`sdp_cli.pipeline.loop_configs`), with its sizes."""
     from sdp_cli.data.sampling import steps_per_epoch
     from sdp_cli.tasks import get_task
 
-    colls = {**stages["collect_first"], **stages["collect_next"]}
-    data_of = {f"{c['dir']}/data.npz": c for c in colls.values()}
     out = []
-    for key, tr in {**stages["train_first"], **stages["train_next"]}.items():
-        coll = data_of[tr["data"]]
-        run, it = _run_of(key)
-        o = _opts(tr.get("opts", ""))
-        task = get_task(coll["task"])
-        st = TrainStage(run, it, coll["task"], tr["method"], int(tr["horizon"]), int(coll["n_traj"]),
-                        int(tr["epochs"]), int(o.get("batch_size", 256)), o.get("action"), tr["data"])
-        if get_method(st.method).family.chunked:
-            st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
-        else:
-            st.E = st.n_traj * task.T
-        st.B = min(st.batch_size, st.E)
-        st.steps = st.epochs * steps_per_epoch(st.E, st.batch_size)
-        out.append(st)
+    for run, cfg in runs.items():
+        task = get_task(cfg.task)
+        o = cfg.train_options
+        for k in range(cfg.n_algo):
+            st = TrainStage(run, k, cfg.task, cfg.method, int(cfg.horizon), cfg.n_traj_at(k), int(cfg.epochs),
+                            int(o.get("batch_size", 256)), o.get("action"))
+            if get_method(st.method).family.chunked:
+                st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
+            else:
+                st.E = st.n_traj * task.T
+            st.B = min(st.batch_size, st.E)
+            st.steps = st.epochs * steps_per_epoch(st.E, st.batch_size)
+            out.append(st)
     return out
 
 
@@ -193,13 +175,13 @@ def _interp(cal: tuple, B: int) -> float:
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
              root: Path = Path(".")) -> tuple[pd.DataFrame, dict]:
     """Per-run estimate of experiment ``name`` and the totals (see the module docstring)."""
-    from sdp_cli.pipeline import expand, load_experiment
+    from sdp_cli.pipeline import load_experiment, loop_configs
     from sdp_cli.tasks import get_task
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
-    stages = expand(name, load_experiment(name, root), per_step=True)
-    train = training_stages(stages)
+    runs = loop_configs(name, load_experiment(name, root))
+    train = training_stages(runs)
     if not train:
         raise SdpError(f"experiment {name!r} has no training stage")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -219,25 +201,23 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
         r["samples"] += st.epochs * st.E
         for d in devices:
             r[f"train_{d}_s"] += st.steps * _interp(cals[d][(st.task, st.method, st.T_h, st.action)], st.B)
-    for key, c in {**stages["collect_first"], **stages["collect_next"]}.items():
-        ms, _ = to_reference(c["task"])
-        if key in stages["collect_next"]:
-            rows[_run_of(key)[0]]["to_s"] += c["n_traj"] * ms
-        else:   # iteration 0's collection is shared by the runs that use it: charge it to the first
-            users = [st.run for st in train if st.data == f"{c['dir']}/data.npz"]
-            if users:
-                rows[users[0]]["to_s"] += c["n_traj"] * ms
-    for key, ev in stages["evaluate"].items():
-        run = key.split("-it")[0]
-        r = rows[run]
-        task = get_task(r["task"])
-        ms, ss = to_reference(r["task"])
-        r["to_s"] += 2 * ev["n_test"] * ms + (2 * ev["n_test"] * ss if ev["refine_opts"] else 0.0)
+    for run, cfg in runs.items():
+        r, task = rows[run], get_task(cfg.task)
+        ms, ss = to_reference(cfg.task)
         st = next(s for s in train if s.run == run)
-        t_a = int(ev["t_a"].split()[-1]) if ev["t_a"] else max(1, st.T_h - 1)
-        calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).family.chunked else task.T
-        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(ev["n_test"], st.B)) / 3
-        r["rollout_s"] += calls * fwd
+        # collection: the naive guess at iteration 0, then policy guess and naive guess (ArgminCost)
+        r["to_s"] += sum(cfg.n_traj_at(k) * ms * (1 if k == 0 else 2) for k in range(cfg.n_algo))
+        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(cfg.n_test, st.B)) / 3
+        for k in range(cfg.n_algo):
+            t_as = list(cfg.eval_t_a or (cfg.t_a,))
+            if k == cfg.n_algo - 1:
+                t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
+            for t_a in t_as * (1 + len(cfg.save_at)):   # the final checkpoint and the save_at ones
+                if cfg.eval_refine:
+                    r["to_s"] += 2 * cfg.n_test * ms + (2 * cfg.n_test * ss if cfg.single_shooting else 0.0)
+                t_a = t_a or max(1, st.T_h - 1)
+                calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).family.chunked else task.T
+                r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))
     for d in devices:
         df[f"total_{d}_s"] = df[f"train_{d}_s"] + df["to_s"] + df["rollout_s"]

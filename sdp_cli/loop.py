@@ -124,6 +124,9 @@ def check_resume(cfg: LoopConfig, out: Path) -> None:
 
     path = out / "loop_config.json"
     if not path.exists():
+        if out.is_dir() and any(out.iterdir()):
+            raise SdpError(f"{out} holds files but no loop_config.json (not an `sdp loop` folder, or one of "
+                           "unknown settings); use another --out")
         return
     try:
         old = json.loads(path.read_text())

@@ -64,11 +64,14 @@ def executor_options(executor: str | None, workers: int | None, scheduler: str |
 
 def run_group(name: str, out: str | os.PathLike, executor: str | None = None, workers: int | None = None,
               scheduler: str | None = None, device: str = "auto", only: list[str] | None = None,
-              log: Callable[[str], None] = print, job: Callable = run_job, root: Path = Path(".")) -> pd.DataFrame:
+              restart_changed: bool = False, log: Callable[[str], None] = print, job: Callable = run_job,
+              root: Path = Path(".")) -> pd.DataFrame:
     """Run (or resume) every run of experiment ``name`` under ``out``; their summaries, one table.
 
-    ``only``: run names to run (default all). ``job``: the per-run function (tests substitute
-    one that kills its worker once)."""
+    ``only``: run names to run (default all). ``restart_changed``: a run folder holding a run with
+    other settings (the experiment file changed) is deleted and the run starts over, as DVC does
+    with the outputs of a changed stage; otherwise it is refused before anything runs. ``job``: the
+    per-run function (tests substitute one that kills its worker once)."""
     from sdp_cli.executor import check_executor_options, error_status, make_executor
     from sdp_cli.loop import check_resume
     from sdp_cli.pipeline import load_experiment, loop_configs
@@ -83,8 +86,16 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
             raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
         runs = {k: v for k, v in runs.items() if k in only}
     out = Path(out)
-    for key, cfg in runs.items():   # a folder holding other settings is refused before any work
-        check_resume(cfg, out / key)
+    for key, cfg in runs.items():   # a folder holding other settings: refused (or restarted) before any work
+        try:
+            check_resume(cfg, out / key)
+        except SdpError:
+            if not restart_changed:
+                raise
+            import shutil
+
+            log(f"  {key}: its folder holds a run with other settings; starting it over")
+            shutil.rmtree(out / key)
     keys = list(runs)
     argsets = [(asdict(runs[k]), str(out / k), device) for k in keys]
     tables, failed = [], []

@@ -13,11 +13,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "sdp_cli"
 #: what each stage's command runs (entry modules); the CLI layer, errors and progress bars are exempt
-ENTRIES = {"collect_first": ["sdp_cli.data.collect"],
-           "collect_next": ["sdp_cli.data.collect", "sdp_cli.rollout", "sdp_cli.refine"],
-           "train_first": ["sdp_cli.train"], "train_next": ["sdp_cli.train"],
-           "evaluate": ["sdp_cli.rollout", "sdp_cli.refine", "sdp_cli.evaluate"],
-           "group": ["sdp_cli.runner", "sdp_cli.loop"], "report": ["sdp_cli.report.make"]}
+ENTRIES = {"group": ["sdp_cli.runner", "sdp_cli.loop", "sdp_cli.data.collect", "sdp_cli.train", "sdp_cli.rollout",
+                     "sdp_cli.refine", "sdp_cli.evaluate"],
+           "report": ["sdp_cli.report.make"]}
 EXEMPT = {"sdp_cli/__init__.py", "sdp_cli/errors.py", "sdp_cli/progress.py", "sdp_cli/cli.py"}
 
 

@@ -51,6 +51,10 @@ def test_loop_resume_recomputes_nothing_and_refuses_other_settings(loop_dir):
     assert {p: p.stat().st_mtime_ns for p in files} == before
     r = _loop(loop_dir, "--seed", "3")
     assert r.exit_code == 1 and "other settings" in r.output and "seed=0" in r.output
+    foreign = loop_dir.parent / "foreign"
+    (foreign / "it0").mkdir(parents=True)      # e.g. an old layout's folder: never resumed as if it were a loop
+    r = _loop(foreign)
+    assert r.exit_code == 1 and "no loop_config.json" in r.output
 
 
 def test_loop_without_eval_refine_reports_policy_metrics_only(tmp_path):

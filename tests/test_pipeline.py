@@ -1,4 +1,5 @@
-"""Experiment files (pipelines/*.yaml) expand into DVC stage lists that chain correctly."""
+"""Experiment files (pipelines/*.yaml): every run is a valid `sdp loop` (one Algorithm 1 for sdp loop,
+`sdp pipeline --run` and DVC), selected into params.yaml for the DVC stage `group`."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import pytest
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.pipeline import expand, load_experiment, select_experiment
+from sdp_cli.experiment import run_names
+from sdp_cli.pipeline import expand, load_experiment, loop_configs, select_experiment
 from sdp_cli.tasks import task_names
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -16,36 +18,45 @@ EXPERIMENTS = sorted(p.stem for p in (ROOT / "pipelines").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_every_experiment_expands_into_chained_stages(name):
+def test_every_experiment_is_a_set_of_valid_loops(name):
     spec = load_experiment(name, root=ROOT)
-    if spec.get("runner") == "group":   # one stage runs every run (sdp_cli.runner); its per-step view must chain too
-        grouped = expand(name, spec)
-        assert list(grouped["group"]) == [name] and not grouped["train_first"]
-    stages = expand(name, spec, per_step=True)
-    assert stages["train_first"], name
-    trained = {v["dir"] + "/policy" for k in ("train_first", "train_next") for v in stages[k].values()}
-    for key, st in list(stages["collect_next"].items()) + list(stages["train_next"].items()):
-        assert st["prev"] in trained, (key, st["prev"])       # each iteration names its predecessor
-        assert st["prev"] != st["dir"] + "/policy"
-    collected = {v["dir"] + "/data.npz" for k in ("collect_first", "collect_next") for v in stages[k].values()}
-    assert all(st["data"] in collected for k in ("train_first", "train_next") for st in stages[k].values())
-    assert all(st["policy"] in trained for st in stages["evaluate"].values())
-    assert {st["task"] for k in ("collect_first", "collect_next") for st in stages[k].values()} <= set(task_names())
+    runs = loop_configs(name, spec)             # every run validated as an `sdp loop` (task, method, T_a, options)
+    assert runs and list(runs) == run_names(name, spec)
+    assert {c.task for c in runs.values()} <= set(task_names())
+    for c in runs.values():                     # the collection seeds of run s never meet another run's
+        assert [c.collect_seed(k) for k in range(c.n_algo)] == [1000 * c.seed + k for k in range(c.n_algo)]
+    assert expand(name, spec) == {"group": {name: {"experiment": name, "dir": f"runs/{name}"}}}
 
 
-def test_fig2_stage_counts_and_selection(tmp_path):
-    stages = expand("fig2", load_experiment("fig2", root=ROOT))
-    # 2 methods x (4 iterations at T_a = 4, then 15 T_a values at the last one)
-    assert len(stages["evaluate"]) == 2 * (4 + 15)
-    assert len(stages["collect_first"]) == 1                 # the naive-guess dataset is shared
-    assert len(stages["train_next"]) == len(stages["collect_next"]) == 2 * 4
+def test_fig2_runs_and_selection(tmp_path):
+    runs = loop_configs("fig2", load_experiment("fig2", root=ROOT))
+    assert list(runs) == ["double_pendulum-sdp-n30-s0", "double_pendulum-dp-n30-s0"]
+    c = runs["double_pendulum-sdp-n30-s0"]
+    assert c.n_algo == 5 and c.epochs == 3000 and c.horizon == 16 and c.t_a == 4
+    assert list(c.eval_t_a_last) == [t for t in range(1, 16) if t != 4]
     params = tmp_path / "params.yaml"
     params.write_text("experiment: small\n")
     counts = select_experiment("fig2", params_path=params, root=ROOT)
     written = yaml.safe_load(params.read_text())
-    assert written["experiment"] == "fig2" and counts["evaluate"] == 38
+    assert written["experiment"] == "fig2" and counts == {"runs": 2}
+    assert written["experiment_stages"]["group"]["fig2"]["dir"] == "runs/fig2"
     with pytest.raises(SdpError, match="unknown experiment 'fig9'; known: .*fig2"):
         select_experiment("fig9", params_path=params, root=ROOT)
+
+
+def test_bad_experiment_files_are_one_clear_error(tmp_path):
+    (tmp_path / "pipelines").mkdir()
+    cases = {"keys": "groups: [{task: pendulum, epoch: 3}]\n",
+             "train": "groups: [{task: pendulum, train: {batchsize: 3}}]\n",
+             "twice": "groups: [{task: pendulum}, {task: pendulum}]\n",
+             "top": "runner: stages\ngroups: [{task: pendulum}]\n",
+             "ta": "groups: [{task: pendulum, horizon: 8, t_a: 9}]\n"}
+    msgs = {"keys": "unknown keys \\['epoch'\\]", "train": "unknown train option", "twice": "appears in two groups",
+            "top": "unknown keys \\['runner'\\]", "ta": "t_a \\[9\\] outside"}
+    for name, text in cases.items():
+        (tmp_path / "pipelines" / f"{name}.yaml").write_text(text)
+        with pytest.raises(SdpError, match=msgs[name]):
+            loop_configs(name, load_experiment(name, root=tmp_path))
 
 
 def test_version_and_pipeline_help_list_what_exists():
@@ -71,10 +82,10 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     from sdp_cli.cli import app
     from sdp_cli.estimate import estimate, training_stages
 
-    small = training_stages(expand("small", load_experiment("small", root=ROOT)))
+    small = training_stages(loop_configs("small", load_experiment("small", root=ROOT)))
     assert len(small) == 4 and {(s.E, s.B) for s in small} == {(53, 53)}
     assert all(s.steps == s.epochs for s in small)
-    fig2 = training_stages(expand("fig2", load_experiment("fig2", root=ROOT)))
+    fig2 = training_stages(loop_configs("fig2", load_experiment("fig2", root=ROOT)))
     assert {(s.E, s.B) for s in fig2 if s.method in ("sdp", "dp")} == {(158, 158)}
     df, totals = estimate("small", workers=2, budget_s=4, root=ROOT)
     assert list(df.run) == ["pendulum-sdp-n10-s0", "pendulum-dp-n10-s0"]

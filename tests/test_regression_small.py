@@ -28,8 +28,8 @@ well the policy's first-order behaviour matches the optimizer's gains. Same runs
 0.00010, 0.00016, 0.00008, 0.00123 (1 thread), 0.00255 (2 threads), worst 0.00255; alpha = 0:
 0.223, 0.140, 0.087, best 0.087. SMALL_SDP_MAX_SOBOLEV = 0.0149, the geometric midpoint. (A
 flipped sign fits its flipped targets, 0.0002-0.0007: the cost check catches that one.)
-This run is seed 0 on 1 thread, the same training seed as `sdp loop --seed 0` (whose second
-collection uses another seed). Whoever changes a task or the training re-runs the script and
+This run is seed 0 on 1 thread: `dvc repro` runs the same `sdp loop` as the script (the DVC stage
+`group`), so its numbers are the script's seed-0 row. Whoever changes a task or the training re-runs the script and
 updates these numbers.
 """
 

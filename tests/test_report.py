@@ -20,9 +20,10 @@ def test_top_index_lists_each_experiment_with_its_commit(tmp_path):
     assert text.index("fig2") < text.index("small")
 
 
-def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, monkeypatch):
-    """DVC leaves the outputs of removed stages in place (e.g. the evaluations of an earlier epoch
-    count): for the experiment params.yaml selects, the report uses only the evaluations it lists."""
+def test_report_ignores_runs_the_selected_experiment_no_longer_has(tmp_path, monkeypatch):
+    """The DVC output runs/<experiment> persists across re-runs, so folders of runs the experiment file no
+    longer has (e.g. an earlier n_traj sweep) stay: for the experiment params.yaml selects, only its
+    current runs are reported."""
     import pandas as pd
     import pytest
     import yaml
@@ -32,29 +33,29 @@ def test_report_ignores_stale_evaluations_of_the_selected_experiment(tmp_path, m
     from sdp_cli.report.make import make_report
 
     monkeypatch.chdir(tmp_path)
-    row = {"task": "pendulum", "method": "sdp", "n_traj": 10, "t_a": 8, "k_rollout": 5, "train_seed": 0,
+    row = {"task": "pendulum", "method": "sdp", "t_a": 8, "k_rollout": 5, "train_seed": 0, "epochs": 700,
            "test_seed": 0, "n": 20, "policy_cost_mean": 0.0, "policy_cost_median": 0.0, "success_rate": 0.5,
-           "rollout_time": 1.0, "rollout_time_per_instance": 0.05, "diverged": 0,
-           "experiment": "exp", "run": "pendulum-sdp-n10-s0", "iteration": 0, "group": 0}
-    for epochs, cost in ((300, 50.0), (700, 20.0)):
-        d = tmp_path / "runs" / "exp" / "pendulum-sdp-n10-s0" / "it0" / "eval" / f"e{epochs}-ta8"
+           "rollout_time": 1.0, "diverged": 0, "iteration": 0}
+    for n_traj, cost in ((5, 50.0), (10, 20.0)):
+        run = f"pendulum-sdp-n{n_traj}-s0"
+        d = tmp_path / "runs" / "exp" / run / "it0" / "eval"
         d.mkdir(parents=True)
-        write_evaluation([{**row, "epochs": epochs, "policy_cost_mean": cost}], d / "eval.csv",
+        write_evaluation([{**row, "n_traj": n_traj, "run": run, "policy_cost_mean": cost}], d / "eval.csv",
                          [{"rollouts": None, "refined": None, "policy": None, "data": None}])
-    current = "runs/exp/pendulum-sdp-n10-s0/it0/eval/e700-ta8"
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(
-        {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": current}}}}))
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "exp.yaml").write_text("groups: [{task: pendulum, methods: [sdp], n_traj: [10]}]\n")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({"experiment": "exp"}))
     logs = []
     make_report("runs/exp", "results/exp", "exp", log=logs.append)
     rows = pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv")
-    assert list(rows.epochs) == [700] and list(rows.policy_cost_mean) == [20.0]
+    assert list(rows.n_traj) == [10] and list(rows.policy_cost_mean) == [20.0]
     assert any("ignoring 1 evaluation" in s for s in logs)
     # another experiment selected: everything under --runs is reported (sdp loop folders, old runs)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump({"experiment": "small"}))
     make_report("runs/exp", "results/exp", "exp")
-    assert sorted(pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv").epochs) == [300, 700]
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(
-        {"experiment": "exp", "experiment_stages": {"evaluate": {"k": {"dir": "runs/exp/other"}}}}))
+    assert sorted(pd.read_csv(tmp_path / "results" / "exp" / "all_runs.csv").n_traj) == [5, 10]
+    (tmp_path / "pipelines" / "exp.yaml").write_text("groups: [{task: pendulum, methods: [dp]}]\n")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump({"experiment": "exp"}))
     with pytest.raises(SdpError, match="no evaluation of the current experiment"):
         make_report("runs/exp", "results/exp", "exp")
 

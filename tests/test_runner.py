@@ -19,7 +19,6 @@ from sdp_cli.runner import run_group
 
 TINY = """
 description: two runs of a tiny loop
-runner: group
 groups:
   - task: pendulum
     methods: [dp]
@@ -76,9 +75,7 @@ def test_runs_of_an_experiment_are_loop_configs(root):
     cfgs = loop_configs("tiny", spec)
     assert list(cfgs) == RUNS
     assert cfgs[RUNS[1]].seed == 1 and cfgs[RUNS[1]].collect_seed(0) == 1000 and cfgs[RUNS[0]].save_at == (1,)
-    stages = expand("tiny", spec)   # runner: group -> one DVC stage running every run
-    assert stages["group"] == {"tiny": {"experiment": "tiny", "dir": "runs/tiny"}}
-    assert not any(stages[k] for k in stages if k != "group")
+    assert expand("tiny", spec) == {"group": {"tiny": {"experiment": "tiny", "dir": "runs/tiny"}}}
 
 
 def test_sequential_runs_evaluate_both_budgets(sequential):

@@ -31,34 +31,36 @@ from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, f
                                     table2c, timing, trajectories)
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 
-def current_evaluations(experiment: str, params: Path = Path("params.yaml")) -> set[Path] | None:
-    """The evaluation folders of ``experiment`` as ``params.yaml`` lists them (DVC layout), or None
-    when params.yaml selects another experiment (or none)."""
+def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:
+    """The runs of ``experiment`` when ``params.yaml`` selects it (the DVC flow), or None (report
+    everything: ``sdp loop`` folders, another experiment's runs)."""
     import yaml
+
+    from sdp_cli.experiment import load_experiment, run_names
 
     if not params.is_file():
         return None
     spec = yaml.safe_load(params.read_text()) or {}
-    if spec.get("experiment") != experiment:
+    if spec.get("experiment") != experiment or not (Path("pipelines") / f"{experiment}.yaml").is_file():
         return None
-    return {Path(ev["dir"]).resolve() for ev in ((spec.get("experiment_stages") or {}).get("evaluate") or {}).values()}
+    return set(run_names(experiment, load_experiment(experiment)))
 
 
 def make_report(runs: str | Path, out: str | Path, experiment: str | None = None,
                 log=lambda s: None) -> list[Path]:
     """Write every table and figure the available runs allow; returns the written paths.
 
-    For the experiment that ``params.yaml`` selects, only the evaluations its stages list are
-    reported: outputs of stages that no longer exist (e.g. before the epochs were changed),
-    which DVC leaves in place, are ignored (and counted in the log)."""
+    For the experiment that ``params.yaml`` selects, only its current runs are reported: folders of
+    runs the experiment file no longer has (e.g. another n_traj sweep), which the persistent DVC
+    output keeps, are ignored (and counted in the log)."""
     runs, out = Path(runs), Path(out)
     df = load_runs(runs, log=log)
-    current = current_evaluations(experiment or runs.name)
+    current = current_runs(experiment or runs.name)
     if current is not None:
-        keep = df.source.map(lambda s: Path(s).resolve() in current)
+        keep = df.run.isin(current)
         if not keep.all():
-            log(f"ignoring {int((~keep).sum())} evaluation(s) in {runs} that the current experiment "
-                f"{experiment or runs.name!r} does not produce (stale outputs of removed stages)")
+            log(f"ignoring {int((~keep).sum())} evaluation(s) in {runs} of runs the current experiment "
+                f"{experiment or runs.name!r} no longer has")
         df = df[keep]
         if df.empty:
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
