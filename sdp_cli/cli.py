@@ -404,11 +404,12 @@ def report_cmd(
     runs: Annotated[Path, typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")],
     out: Annotated[Path, typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG).")] = Path("results"),
     experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
+    metrics: Annotated[Optional[Path], typer.Option(help="Also write the last iteration's mean costs and success per task and method as JSON (DVC metrics).")] = None,
 ) -> None:
     """Write the paper's tables and figures from whatever runs exist."""
     from sdp_cli.report.make import make_report
 
-    files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True))
+    files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics)
     typer.echo(f"wrote {len(files)} files to {out}")
 
 

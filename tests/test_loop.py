@@ -84,8 +84,14 @@ def test_loop_executor_options_are_validated(tmp_path):
 
 def test_report_of_a_loop_run(loop_dir, tmp_path):
     res = tmp_path / "results" / "tiny"
-    r = runner.invoke(app, ["report", "--runs", str(loop_dir.parent), "--out", str(res), "--experiment", "tiny"])
+    r = runner.invoke(app, ["report", "--runs", str(loop_dir.parent), "--out", str(res), "--experiment", "tiny",
+                            "--metrics", str(tmp_path / "metrics" / "tiny.json")])
     assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "metrics" / "tiny.json").read_text())   # DVC metrics: the last iteration
+    last_row = pd.read_csv(loop_dir / "summary.csv").query("iteration == 1").iloc[0]
+    assert m["pendulum"]["sdp"]["iteration"] == 1 and m["pendulum"]["sdp"]["seeds"] == 1
+    assert m["pendulum"]["sdp"]["policy_cost_mean"] == pytest.approx(last_row.policy_cost_mean)
+    assert m["pendulum"]["sdp"]["to_alone_cost_mean"] == pytest.approx(last_row.to_alone_cost_mean)
     for name in ("all_runs.csv", "fig1_pendulum.png", "fig2a_pendulum.csv", "fig2b_pendulum.png",
                  "table2c_pendulum.md", "traj_pendulum.png", "README.md"):
         assert (res / name).is_file(), name

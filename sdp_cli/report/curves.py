@@ -45,6 +45,32 @@ def training_curves(df: pd.DataFrame, out: Path) -> list[Path]:
     return written
 
 
+#: the columns of the metrics summary (``sdp report --metrics``), means over seeds
+METRIC_COLUMNS = ("policy_cost_mean", "policy_cost_median", "success_rate", "refined_cost_mean",
+                  "refined_converged_rate", "argmin_cost_mean", "to_alone_cost_mean", "to_alone_converged_rate")
+
+
+def metrics_summary(loop_rows: pd.DataFrame) -> dict:
+    """``{task: {method: {column: mean over seeds}}}`` at the last iteration, the largest epoch count
+    and the loop's T_a (``loop_rows``), for ``dvc metrics show`` / ``dvc metrics diff`` (non-finite
+    means are null)."""
+    out: dict = {}
+    for (task, method), g in loop_rows.groupby(["task", "method"]):
+        g = g[g.iteration == g.iteration.max()]
+        g = g[g.epochs == g.epochs.max()] if "epochs" in g and g.epochs.notna().any() else g
+        vals = {c: float(g[c].astype(float).mean()) for c in METRIC_COLUMNS if c in g}
+        vals = {c: (v if np.isfinite(v) else None) for c, v in vals.items()}
+        out.setdefault(str(task), {})[str(method)] = {"iteration": int(g.iteration.max()), "seeds": int(g.train_seed.nunique()),
+                                                      **vals}
+    return out
+
+
+def write_metrics(summary: dict, path: Path) -> Path:
+    import json
+
+    return atomic_write_bytes(path, lambda f: f.write(json.dumps(summary, indent=2, sort_keys=True).encode()))
+
+
 def loop_costs(df: pd.DataFrame, task: str, out: Path, loop_rows: pd.DataFrame) -> list[Path]:
     """``loop/<task>-<method>.csv``, x = iteration (``loop_rows``: the rows at the loop's T_a)."""
     cols = {"policy_cost_mean": "policy", "refined_cost_mean": "refined", "success_rate": "success"}

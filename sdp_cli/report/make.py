@@ -47,8 +47,9 @@ def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str
 
 
 def make_report(runs: str | Path, out: str | Path, experiment: str | None = None,
-                log=lambda s: None) -> list[Path]:
+                log=lambda s: None, metrics: str | Path | None = None) -> list[Path]:
     """Write every table and figure the available runs allow; returns the written paths.
+    ``metrics``: also write the last iteration's means per task and method there (JSON, DVC metrics).
 
     For the experiment that ``params.yaml`` selects, only its current runs are reported: folders of
     runs the experiment file no longer has (e.g. another n_traj sweep), which the persistent DVC
@@ -73,6 +74,11 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
             written += fn(df, task, out)
         written += loop_costs(df, task, out, _loop_t_a(df[df.task == task]))
     written += training_curves(df, out)
+    if metrics is not None:
+        from sdp_cli.report.curves import metrics_summary, write_metrics
+
+        rows = pd.concat([_loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
+        write_metrics(metrics_summary(rows), Path(metrics))
     written.append(_index(df, runs, out, experiment, written))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
