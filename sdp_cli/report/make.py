@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, git_revision
+from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
 from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
                                     table2c, timing, trajectories)
@@ -104,14 +104,14 @@ def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
 
 
 def _top_index(results: Path) -> Path:
-    """``results/README.md``: each experiment folder's index, with the commit that produced it."""
+    """``results/README.md``: each experiment folder's index, with the commit of the code that produced it."""
     lines = ["# Results", "", "One folder per experiment, written by `sdp report` from real runs. Each folder's",
              "README.md names the runs, the commit, and the seeds and budgets of every file in it.", "",
-             "| experiment | produced at commit | files |", "|---|---|---|"]
+             "| experiment | code commit | files |", "|---|---|---|"]
     for sub in sorted(p for p in results.iterdir() if (p / "README.md").is_file()):
         text = (sub / "README.md").read_text()
         commit = next((ln.split("commit `")[1].split("`")[0] for ln in text.splitlines()
-                       if "at commit `" in ln), "unknown")
+                       if "commit `" in ln), "unknown")
         n_files = sum(1 for f in sub.iterdir() if f.is_file() and f.name != "README.md")
         lines.append(f"| [{sub.name}]({sub.name}/README.md) | `{commit}` | {n_files} |")
     return atomic_write_bytes(results / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
@@ -129,7 +129,7 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     source = (f"from the experiment `{name}` (see `pipelines/{name}.yaml`)." if spec.is_file()
               else f"from the runs in `{runs}` (no `pipelines/{name}.yaml`: e.g. `sdp loop` runs).")
     lines = [f"# Results: {name}", "",
-             f"Produced by `sdp report --runs {runs} --out {out}` at commit `{git_revision()}`", source, "",
+             f"Produced by `sdp report --runs {runs} --out {out}` with the code of commit `{code_revision()}`", source, "",
              "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
