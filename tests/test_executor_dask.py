@@ -15,6 +15,7 @@ import sys
 import time
 
 import numpy as np
+import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
@@ -177,3 +178,22 @@ def test_local_cluster_leaves_this_process_environment_alone(monkeypatch):
     with make_executor("dask", workers=1) as ex:
         assert ex.slots() == 1
     assert dict(os.environ) == before
+
+
+def test_runs_of_an_experiment_on_dask_equal_local(tmp_path, cluster):
+    """`sdp pipeline NAME --run --scheduler ADDR`: the runs execute on the cluster's workers, with the same
+    results as in this process."""
+    from sdp_cli.runner import run_group
+
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "tiny.yaml").write_text(
+        "groups: [{task: pendulum, methods: [dp], seeds: [1], n_traj: [2], epochs: 2, horizon: 8, t_a: 4, "
+        "n_test: 2, train: {batch_size: 8}}]\n")
+    cols = ["run", "policy_cost_mean", "refined_cost_mean", "to_alone_cost_mean"]
+    local = run_group("tiny", tmp_path / "local", executor="local", workers=1, device="cpu", root=tmp_path,
+                      log=lambda s: None)
+    remote = run_group("tiny", tmp_path / "dask", scheduler=cluster.scheduler_address, device="cpu", root=tmp_path,
+                       log=lambda s: None)
+    pd.testing.assert_frame_equal(local.sort_values("run")[cols].reset_index(drop=True),
+                                  remote.sort_values("run")[cols].reset_index(drop=True))
+    assert (tmp_path / "dask" / "pendulum-dp-n2-s1" / "summary.csv").is_file()
