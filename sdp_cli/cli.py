@@ -74,6 +74,14 @@ ThreadsOpt = Annotated[int, typer.Option(
 
 ProgressOpt = Annotated[bool, typer.Option(
     "--progress/--no-progress", help="Progress bars on stderr (only on a terminal: never under DVC or a pipe).")]
+_EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
+                  "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
+_SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
+#: options shared by the commands that solve, train or roll out: declared once here
+WorkersOpt = Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")]
+ExecutorOpt = Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)]
+SchedulerOpt = Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)]
+DeviceOpt = Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")]
 
 
 def set_threads(threads: int) -> None:
@@ -93,10 +101,6 @@ def _method_help() -> str:
 
 
 _METHOD_HELP = _method_help()
-_EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
-                  "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
-_SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
-
 
 @app.command("collect")
 @clean_errors
@@ -105,14 +109,14 @@ def collect_cmd(
     n_traj: Annotated[int, typer.Option("--n-traj", help="Number of converged trajectories to keep.")] = 30,
     seed: Annotated[int, typer.Option(help="Seed: xi_i is a function of (seed, i).")] = 0,
     out: Annotated[Optional[Path], typer.Option(help="Dataset artifact (.npz); default data/<task>-n<N>-s<seed>.npz.")] = None,
-    workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
+    workers: WorkersOpt = None,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap; non-converged solves are rejected.")] = 1000,
     max_attempts: Annotated[Optional[int], typer.Option("--max-attempts", help="Cap on solves tried (default 20 x n_traj).")] = None,
     policy: Annotated[Optional[Path], typer.Option(help="Warm-start TO with this policy's rollouts and keep the better of policy-guess and naive-guess solves (Algorithm 1, lines 3-8).")] = None,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="With --policy: actions played per prediction.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
-    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
-    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
+    executor: ExecutorOpt = None,
+    scheduler: SchedulerOpt = None,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
 ) -> None:
@@ -148,7 +152,7 @@ def rollout_cmd(
     seed: Annotated[int, typer.Option(help="Test seed: instances are disjoint from every training seed.")] = 0,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
-    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")] = "auto",
+    device: DeviceOpt = "auto",
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
 ) -> None:
@@ -173,9 +177,9 @@ def refine_cmd(
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Also report the second TO baseline, single shooting solved by IPOPT (the paper's DDP family), from the policy's and the naive controls (not kept in the dataset).")] = False,
-    workers: Annotated[Optional[int], typer.Option(help="Worker processes (default: all cores).")] = None,
-    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
-    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
+    workers: WorkersOpt = None,
+    executor: ExecutorOpt = None,
+    scheduler: SchedulerOpt = None,
     progress: ProgressOpt = True,
 ) -> None:
     """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
@@ -248,7 +252,7 @@ def train_cmd(
     epochs: Annotated[int, typer.Option(help="Epochs: |D|(T-T_h)/T_h chunks (diffusion) or |D|T pairs (MLP).")],
     out: Annotated[Path, typer.Option(help="Run folder: checkpoint.pt, epoch_<E>.pt, metrics.csv.")],
     seed: Annotated[int, typer.Option(help="Seed of initialization, batches, noise and projections.")] = 0,
-    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")] = "auto",
+    device: DeviceOpt = "auto",
     batch_size: Annotated[int, typer.Option("--batch-size", help="Batch size B.")] = 256,
     lr: Annotated[float, typer.Option(help="Peak AdamW learning rate (cosine schedule with warm-up).")] = 1e-3,
     horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h (diffusion methods).")] = 32,
@@ -318,10 +322,10 @@ def loop_cmd(
     test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
-    workers: Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")] = None,
-    device: Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda: training and rollouts.")] = "auto",
-    executor: Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)] = None,
-    scheduler: Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)] = None,
+    workers: WorkersOpt = None,
+    device: DeviceOpt = "auto",
+    executor: ExecutorOpt = None,
+    scheduler: SchedulerOpt = None,
     alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's).")] = None,
     batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
     sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,

@@ -18,8 +18,8 @@ import numpy as np
 
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
 from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, TIE_RTOL, WIN_BASELINE, WIN_NONE,  # noqa: F401 (re-exported)
-                                 WIN_POLICY, argmin_cost, failed_record, refine_instance, usable_guess,
-                                 warm_solver)
+                                 WIN_POLICY, argmin_cost, failed_record, instance_arrays, refine_instance,
+                                 usable_guess, warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params
@@ -79,15 +79,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         if own:
             ex.close()
     kept = [i for i in range(n) if recs[i]["winner"] != WIN_NONE]
-    out_arrays = {f"inst_{k}": np.array([r[k] for r in recs]) for k in
-                  ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost",
-                   "base_iterations", "base_converged", "base_time", "winner")}
-    if single_shooting:
-        out_arrays.update({f"inst_{k}": np.array([r[k] for r in recs]) for k in SS_KEYS})
-    out_arrays["inst_xi"] = arrays["xi"]
-    nan_X = np.full(arrays["X"].shape[1:], np.nan)
-    for k in ("pol_X", "base_X"):  # (n, T+1, nx): the solve from the policy guess / naive guess
-        out_arrays[f"inst_{k}"] = np.stack([nan_X if r[k] is None else np.asarray(r[k]) for r in recs])
+    out_arrays = instance_arrays(recs, arrays["X"].shape[1:], single_shooting)
     for k in RESULT_KEYS:
         shape = np.asarray(recs[kept[0]][k]).shape if kept else ()
         out_arrays[k] = np.stack([recs[i][k] for i in kept]) if kept else np.zeros((0, *shape))

@@ -169,3 +169,26 @@ def failed_record(xi: np.ndarray, status: str) -> dict:
             **{f"ss_{g}_{k}": v for g in ("pol", "base") for k, v in SS_MISSING.items()}}
 
 
+#: per-instance fields of a policy-warm-started solve, stored as ``inst_<field>`` (docs/artifacts.md)
+INSTANCE_FIELDS = ("pol_cost", "pol_iterations", "pol_converged", "pol_time", "base_cost", "base_iterations",
+                   "base_converged", "base_time", "winner")
+_INSTANCE_MISSING = {"pol_cost": np.nan, "pol_iterations": -1, "pol_converged": False, "pol_time": 0.0,
+                     "base_cost": np.nan, "base_iterations": -1, "base_converged": False, "base_time": 0.0,
+                     "winner": WIN_NONE}
+
+
+def instance_arrays(recs: list[dict], x_shape: tuple, single_shooting: bool = False) -> dict:
+    """The ``inst_*`` arrays of policy-warm-started solves, one row per instance tried, kept or not,
+    the one schema of ``sdp refine`` and ``sdp collect --policy``: ``inst_xi``, ``inst_<field>`` for
+    :data:`INSTANCE_FIELDS` (and the ``ss_*`` ones with ``single_shooting``), ``inst_pol_X`` /
+    ``inst_base_X`` ``(n, T+1, nx)`` (NaN where not solved). Records of jobs that raised lack fields:
+    they read as not solved."""
+    keys = INSTANCE_FIELDS + (SS_KEYS if single_shooting else ())
+    missing = {**_INSTANCE_MISSING, **{f"ss_{g}_{k}": v for g in ("pol", "base") for k, v in SS_MISSING.items()}}
+    out = {f"inst_{k}": np.array([np.asarray(r.get(k, missing[k])).item() for r in recs]) for k in keys}
+    out["inst_xi"] = np.stack([np.asarray(r["xi"], dtype=float) for r in recs])
+    nan_X = np.full(x_shape, np.nan)
+    for k in ("pol_X", "base_X"):
+        out[f"inst_{k}"] = np.stack([nan_X if r.get(k) is None or np.asarray(r.get(k)).shape != x_shape
+                                     else np.asarray(r[k], dtype=float) for r in recs])
+    return out

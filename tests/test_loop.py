@@ -41,6 +41,17 @@ def test_loop_writes_every_iteration(loop_dir):
     assert m0["config"]["policy"] is None
     assert m1["config"]["policy"] == str(loop_dir / "it0" / "policy") and m1["config"]["t_a"] == 4
     assert m0["config"]["seed"] != m1["config"]["seed"]
+    # the warm-started collection and the evaluation's refinement share one schema of per-instance records
+    d1, _ = load_npz(loop_dir / "it1" / "data.npz", kind="dataset")
+    f1, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")
+    inst = sorted(k for k in f1 if k.startswith("inst_"))
+    assert inst == sorted(k for k in d1 if k.startswith("inst_") and k != "inst_index")
+    assert set(d1["index"]) <= set(d1["inst_index"]) and len(d1["inst_winner"]) == len(d1["inst_index"])
+    for i, idx in enumerate(d1["index"]):      # each kept trajectory is its instance's ArgminCost
+        j = list(d1["inst_index"]).index(idx)
+        cands = [c for c, ok in ((d1["inst_pol_cost"][j], d1["inst_pol_converged"][j]),
+                                 (d1["inst_base_cost"][j], d1["inst_base_converged"][j])) if ok]
+        assert d1["cost"][i] == pytest.approx(min(cands))
 
 
 def test_loop_resume_recomputes_nothing_and_refuses_other_settings(loop_dir):

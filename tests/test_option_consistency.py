@@ -39,3 +39,14 @@ def test_loop_and_pipeline_pass_train_options_under_the_same_flags():
     for key in ("alpha_sobolev", "batch_size", "sobolev_cap", "sobolev_path", "sobolev_balance"):
         assert key in loop and key in names          # `sdp loop` forwards these into TrainConfig
         assert set(loop[key].opts) <= train, key
+
+
+def test_shared_options_are_declared_once():
+    """--workers/--executor/--scheduler (solves), --device, --threads and --progress mean the same in every
+    command that has them (one Annotated alias each in sdp_cli.cli)."""
+    groups = {"workers": ("collect", "refine", "loop"), "executor": ("collect", "refine", "loop"),
+              "scheduler": ("collect", "refine", "loop"), "device": ("train", "rollout", "loop"),
+              "threads": ("collect", "train", "rollout", "loop"), "progress": ("collect", "refine", "train", "loop")}
+    for opt, commands in groups.items():
+        decls = {(tuple(_params(c)[opt].opts), _params(c)[opt].help, _params(c)[opt].default) for c in commands}
+        assert len(decls) == 1, (opt, decls)

@@ -27,8 +27,8 @@ import numpy as np
 from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz, split_timing
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
-from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, refine_index, sample_xi,  # noqa: F401 (re-exported)
-                                 solve_index, warm_solver)
+from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, refine_index,  # noqa: F401
+                                 sample_xi, solve_index, warm_solver)
 from sdp_cli.tasks import Task, get_task
 
 @dataclass(frozen=True)
@@ -295,9 +295,12 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
         raise SdpError(f"only {n_conv} of {config.n_traj} solves converged after {len(done)} attempts "
                        f"(cap {cap}){why}; raise --max-attempts or --max-iter (finished solves are kept "
                        f"in {store.dir})")
-    extra = ("winner", "pol_cost", "pol_iterations", "base_cost", "base_iterations") if config.policy else ()
-    arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index") + extra}
+    arrays = {k: np.stack([np.asarray(done[i][k]) for i in kept]) for k in RESULT_KEYS + ("xi", "index")}
     arrays["converged"] = arrays["converged"].astype(bool)
+    if config.policy:   # every index tried, kept or not: the schema of `sdp refine` (solve_jobs.instance_arrays)
+        tried = sorted(done)
+        arrays.update(instance_arrays([done[i] for i in tried], (task.T + 1, task.nx)))
+        arrays["inst_index"] = np.asarray(tried, dtype=int)
     dims = task.dims()
     arrays, timing = split_timing(arrays)   # clock readings go to the timing sidecar
     path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": described.get("workers"),
