@@ -111,15 +111,22 @@ class LoopConfig:
 
 # settings that may change when a loop is resumed (where it runs, how much is evaluated)
 RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler",
-                    "single_shooting", "eval_refine")
+                    "single_shooting", "eval_refine", "code_rev")
 
 
 def _config_json(cfg: LoopConfig) -> str:
-    return pd.Series(asdict(cfg)).to_json(indent=2)
+    from sdp_cli.data.artifacts import code_revision
+
+    return pd.Series({**asdict(cfg), "code_rev": code_revision()}).to_json(indent=2)
 
 
-def check_resume(cfg: LoopConfig, out: Path) -> None:
-    """Refuse to resume ``out`` with settings that would mix two experiments in one folder."""
+def check_resume(cfg: LoopConfig, out: Path, same_code: bool = False) -> None:
+    """Refuse to resume ``out`` with settings that would mix two experiments in one folder.
+
+    ``loop_config.json`` also records the code revision (:func:`sdp_cli.data.artifacts.code_revision`)
+    of the last (re)start: ``sdp loop`` resumes across code revisions (the artifacts record theirs);
+    with ``same_code`` (the DVC stage, whose code dependencies changed) another revision counts as
+    other settings."""
     import json
 
     path = out / "loop_config.json"
@@ -134,6 +141,9 @@ def check_resume(cfg: LoopConfig, out: Path) -> None:
         raise SdpError(f"corrupt loop config {path}: {e}") from None
     new = json.loads(_config_json(cfg))
     bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
+    if same_code and old.get("code_rev") != new["code_rev"]:
+        bad.append("code_rev")
+        old.setdefault("code_rev", None)
     if bad:
         diffs = ", ".join(f"{k}={old[k]!r} (now {new[k]!r})" for k in bad)
         raise SdpError(f"{out} holds a loop run with other settings: {diffs}; use another --out")

@@ -69,8 +69,9 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     """Run (or resume) every run of experiment ``name`` under ``out``; their summaries, one table.
 
     ``only``: run names to run (default all). ``restart_changed``: a run folder holding a run with
-    other settings (the experiment file changed) is deleted and the run starts over, as DVC does
-    with the outputs of a changed stage; otherwise it is refused before anything runs. ``job``: the
+    other settings (the experiment file changed) or made by other code (another code revision) is
+    deleted and the run starts over, as DVC does with the outputs of a changed stage; otherwise other
+    settings are refused before anything runs and other code is resumed. ``job``: the
     per-run function (tests substitute one that kills its worker once)."""
     from sdp_cli.executor import check_executor_options, error_status, make_executor
     from sdp_cli.loop import check_resume
@@ -88,7 +89,7 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     out = Path(out)
     for key, cfg in runs.items():   # a folder holding other settings: refused (or restarted) before any work
         try:
-            check_resume(cfg, out / key)
+            check_resume(cfg, out / key, same_code=restart_changed)
         except SdpError:
             if not restart_changed:
                 raise

@@ -127,3 +127,25 @@ def test_cli_run_errors_are_one_line(root, monkeypatch):
     assert r.exit_code == 1 and "SDP_WORKERS must be an integer" in r.output
     r = runner.invoke(app, ["pipeline", "tiny", "--run", "--estimate"])
     assert r.exit_code == 1 and "exclude each other" in r.output
+
+
+def test_dvc_mode_restarts_runs_of_other_code_or_settings(root, sequential, tmp_path):
+    """What the DVC stage runs (--restart-changed): a run folder made by another code revision (its code
+    dependencies changed) is started over, not resumed into stale artifacts; plain resumes keep it."""
+    import json
+    import shutil
+
+    out = tmp_path / "runs"
+    shutil.copytree(sequential[0] / RUNS[0], out / RUNS[0])
+    cfg = out / RUNS[0] / "loop_config.json"
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "code_rev": "0" * 40}))
+    ck = out / RUNS[0] / "it0" / "policy" / "checkpoint.pt"
+    before = ck.stat().st_mtime_ns
+    run_group("tiny", out, workers=1, device="cpu", root=root, only=[RUNS[0]], log=lambda s: None)
+    assert ck.stat().st_mtime_ns == before                      # `sdp loop` semantics: resumed, nothing redone
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "code_rev": "0" * 40}))
+    logs = []
+    df = run_group("tiny", out, workers=1, device="cpu", root=root, only=[RUNS[0]], restart_changed=True,
+                   log=logs.append)
+    assert any("starting it over" in s for s in logs) and ck.stat().st_mtime_ns != before
+    pd.testing.assert_frame_equal(_table(df), _table(sequential[1][sequential[1].run == RUNS[0]]))
