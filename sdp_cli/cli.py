@@ -5,13 +5,14 @@ Every :class:`~sdp_cli.errors.SdpError` becomes one line on stderr and exit code
 
 from __future__ import annotations
 
-import functools
 import sys
 from pathlib import Path
-from typing import Annotated, Callable, Optional
+from typing import Annotated, Optional
 
 import typer
 
+from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
+                                 WorkersOpt, clean_errors, int_list, method_help, set_threads, task_help)
 from sdp_cli.errors import SdpError
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
@@ -34,23 +35,6 @@ def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
 
 
-def clean_errors(fn: Callable) -> Callable:
-    """Turn SdpError (and Ctrl-C) into a one-line message and exit code 1."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except SdpError as e:
-            typer.echo(f"Error: {e}", err=True)
-            raise typer.Exit(1) from None
-        except KeyboardInterrupt:
-            typer.echo("Interrupted.", err=True)
-            raise typer.Exit(130) from None
-
-    return wrapper
-
-
 @app.command("tasks")
 @clean_errors
 def tasks_cmd() -> None:
@@ -61,51 +45,12 @@ def tasks_cmd() -> None:
         typer.echo(f"{name:24s} {desc}")
 
 
-def _task_help() -> str:
-    from sdp_cli.tasks import task_names
-
-    return "Task name, one of: " + ", ".join(task_names()) + " (see `sdp tasks`)."
-
-
-ThreadsOpt = Annotated[int, typer.Option(
-    help="torch CPU threads of this process (default 1: the networks are tiny, one thread is fastest on a "
-         "busy or 2-core CPU, and results do not depend on the machine's core count).")]
-
-
-ProgressOpt = Annotated[bool, typer.Option(
-    "--progress/--no-progress", help="Progress bars on stderr (only on a terminal: never under DVC or a pipe).")]
-_EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
-                  "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
-_SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
-#: options shared by the commands that solve, train or roll out: declared once here
-WorkersOpt = Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")]
-ExecutorOpt = Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)]
-SchedulerOpt = Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)]
-DeviceOpt = Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")]
-
-
-def set_threads(threads: int) -> None:
-    """Pin torch's intra-op threads (every command that runs a network calls this first)."""
-    if threads <= 0:
-        raise SdpError(f"--threads must be > 0, got {threads}")
-    import torch
-
-    torch.set_num_threads(threads)
-
-
-def _method_help() -> str:
-    from sdp_cli.policy.registry import get_method, method_names
-
-    return "; ".join(f"{m} ({get_method(m).description})" if get_method(m).description else m
-                     for m in method_names()) + "."
-
-
-_METHOD_HELP = _method_help()
+_METHOD_HELP = method_help()
 
 @app.command("collect")
 @clean_errors
 def collect_cmd(
-    task: Annotated[str, typer.Option(help=_task_help())],
+    task: Annotated[str, typer.Option(help=task_help())],
     n_traj: Annotated[int, typer.Option("--n-traj", help="Number of converged trajectories to keep.")] = 30,
     seed: Annotated[int, typer.Option(help="Seed: xi_i is a function of (seed, i).")] = 0,
     out: Annotated[Optional[Path], typer.Option(help="Dataset artifact (.npz); default data/<task>-n<N>-s<seed>.npz.")] = None,
@@ -294,19 +239,10 @@ def train_cmd(
     typer.echo(f"wrote {path}")
 
 
-def _int_list(value: Optional[str], name: str) -> tuple:
-    if not value:
-        return ()
-    try:
-        return tuple(int(v) for v in value.split(","))
-    except ValueError:
-        raise SdpError(f"{name} must be comma-separated integers, got {value!r}") from None
-
-
 @app.command("loop")
 @clean_errors
 def loop_cmd(
-    task: Annotated[str, typer.Option(help=_task_help())],
+    task: Annotated[str, typer.Option(help=task_help())],
     method: Annotated[str, typer.Option(help=_METHOD_HELP)],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
     n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
@@ -345,14 +281,14 @@ def loop_cmd(
     opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size),
                               ("sobolev_cap", sobolev_cap), ("sobolev_path", sobolev_path),
                               ("sobolev_balance", sobolev_balance)) if v is not None}
-    cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=_int_list(n_traj, "--n-traj"),
+    cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
                      epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
-                     eval_t_a=_int_list(eval_t_a, "--eval-t-a"),
-                     eval_t_a_last=_int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
+                     eval_t_a=int_list(eval_t_a, "--eval-t-a"),
+                     eval_t_a_last=int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
                      train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine,
-                     save_at=_int_list(save_at, "--save-at"))
+                     save_at=int_list(save_at, "--save-at"))
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

@@ -16,7 +16,7 @@ PKG = ROOT / "sdp_cli"
 ENTRIES = {"group": ["sdp_cli.runner", "sdp_cli.loop", "sdp_cli.data.collect", "sdp_cli.train", "sdp_cli.rollout",
                      "sdp_cli.refine", "sdp_cli.evaluate"],
            "report": ["sdp_cli.report.make"]}
-EXEMPT = {"sdp_cli/__init__.py", "sdp_cli/errors.py", "sdp_cli/progress.py", "sdp_cli/cli.py"}
+EXEMPT = {"sdp_cli/__init__.py", "sdp_cli/errors.py", "sdp_cli/progress.py", "sdp_cli/cli.py", "sdp_cli/cli_options.py"}
 
 
 def _file(mod: str) -> Path | None:
