@@ -16,7 +16,8 @@ from sdp_cli.errors import SdpError
 PIPELINES_DIR = Path("pipelines")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
                   "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50,
-                  "test_seed": 0, "max_iter": 1000, "single_shooting": False, "train": {}, "tag": None}
+                  "test_seed": 0, "max_iter": 1000, "single_shooting": False, "train": {}, "tag": None,
+                  "n_traj_schedule": None}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:
@@ -46,7 +47,17 @@ def check_group(name: str, gi: int, raw: dict) -> dict:
         raise SdpError(f"experiment {name!r}, group {gi}: unknown keys {sorted(unknown)}")
     if "task" not in raw:
         raise SdpError(f"experiment {name!r}, group {gi}: 'task' is required")
-    return {**GROUP_DEFAULTS, **raw}
+    g = {**GROUP_DEFAULTS, **raw}
+    sched = g["n_traj_schedule"]
+    if sched is not None:
+        if not (isinstance(sched, list) and sched and all(isinstance(n, int) and n > 0 for n in sched)):
+            raise SdpError(f"experiment {name!r}, group {gi}: n_traj_schedule must be a list of positive integers "
+                           f"(trajectories per iteration), got {sched!r}")
+        if "n_traj" in raw:
+            raise SdpError(f"experiment {name!r}, group {gi}: give n_traj (a sweep) or n_traj_schedule (per "
+                           "iteration), not both")
+        g["n_traj"] = [sched[0]]   # the run's name carries the first iteration's count
+    return g
 
 
 def run_name(task: str, method: str, n_traj: int, seed: int, tag: str | None = None) -> str:

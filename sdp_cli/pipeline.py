@@ -8,6 +8,7 @@ An experiment file lists *groups*; each group is a sweep::
         methods: [sdp, dp]
         seeds: [0, 1]
         n_traj: [3, 10]        # one run per value (Fig. 1's sweep); a loop uses one value
+        # n_traj_schedule: [30, 50, 70]   # instead: one run, trajectories per iteration (the last repeats)
         n_algo: 1              # iterations of Algorithm 1
         epochs: 1000           # n_pl per iteration
         save_at: [500]         # extra epoch counts evaluated (Fig. 1)
@@ -69,7 +70,8 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
             if key in runs:
                 raise SdpError(f"experiment {name!r}: run {key} appears in two groups (give them different `tag`s)")
             runs[key] = LoopConfig(
-                task=g["task"], method=method, n_algo=g["n_algo"], n_traj=(int(n_traj),), epochs=g["epochs"],
+                task=g["task"], method=method, n_algo=g["n_algo"],
+                n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), epochs=g["epochs"],
                 seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
                 eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
                 test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
