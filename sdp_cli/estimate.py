@@ -63,7 +63,6 @@ class TrainStage:
     epochs: int
     batch_size: int
     action: str | None
-    data: str = ""
     E: int = 0
     B: int = 0
     steps: int = 0

@@ -13,14 +13,18 @@ def _git(cwd, *args):
                         "GIT_COMMITTER_EMAIL": "t@t", "HOME": str(cwd), "PATH": "/usr/bin:/bin"})
 
 
+def _repo(root, files: dict) -> None:
+    """A git repository at ``root`` with ``files`` (path: text) committed."""
+    for path, text in files.items():
+        (root / path).parent.mkdir(parents=True, exist_ok=True)
+        (root / path).write_text(text)
+    _git(root, "init", "-q")
+    _git(root, "add", "-A")
+    _git(root, "commit", "-q", "-m", "init")
+
+
 def test_outputs_are_not_modifications_but_code_is(tmp_path):
-    (tmp_path / "results").mkdir()
-    (tmp_path / "code.py").write_text("x = 1\n")
-    (tmp_path / "results" / "table.csv").write_text("a\n1\n")
-    (tmp_path / "dvc.lock").write_text("v: 1\n")
-    _git(tmp_path, "init", "-q")
-    _git(tmp_path, "add", "-A")
-    _git(tmp_path, "commit", "-q", "-m", "init")
+    _repo(tmp_path, {"code.py": "x = 1\n", "results/table.csv": "a\n1\n", "dvc.lock": "v: 1\n"})
     rev = revision_of(tmp_path)
     assert len(rev) == 40 and not rev.endswith("+dirty")
     (tmp_path / "results" / "table.csv").write_text("a\n2\n")
@@ -35,12 +39,7 @@ def test_outputs_are_not_modifications_but_code_is(tmp_path):
 def test_artifacts_record_the_last_commit_of_the_code(tmp_path):
     """A commit of results or docs leaves the recorded revision (and so the artifacts' bytes) as it was;
     a commit of the code changes it; uncommitted code is +dirty."""
-    (tmp_path / "sdp_cli").mkdir()
-    (tmp_path / "sdp_cli" / "m.py").write_text("x = 1\n")
-    (tmp_path / "README.md").write_text("a\n")
-    _git(tmp_path, "init", "-q")
-    _git(tmp_path, "add", "-A")
-    _git(tmp_path, "commit", "-q", "-m", "code")
+    _repo(tmp_path, {"sdp_cli/m.py": "x = 1\n", "README.md": "a\n"})
     rev = code_revision_of(tmp_path)
     assert len(rev) == 40
     (tmp_path / "README.md").write_text("b\n")
