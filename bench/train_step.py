@@ -1,6 +1,11 @@
 """Time one training step of DP and SDP (and the Sobolev variants) in one run, print ratios.
 
     python bench/train_step.py [--batch 256] [--horizon 32] [--rounds 12] [--threads N] [--data DATASET]
+                               [--csv results/bench/train_step.csv --setting NAME]
+
+``--csv`` appends one row per mode (setting, sizes, medians, ratios to dp, load, torch version) to a
+CSV, replacing the rows of the same ``--setting``; ``results/bench/train_step.csv`` is read by the
+claims ledger (``sdp report --ledger``, claim "one SDP epoch costs about 2x a DP epoch").
 
 A step is loss + backward + AdamW update on the default conditional U-Net ([24, 24, 32, 32]).
 Modes, measured interleaved (round-robin) so that machine load affects all alike; the
@@ -95,6 +100,8 @@ def main():
     ap.add_argument("--n-obs", type=int, default=3, help="observation size (obs(x), u_prev) of the synthetic batch")
     ap.add_argument("--n-xi", type=int, default=2, help="xi size of the synthetic batch")
     ap.add_argument("--modes", default="dp,sdp-vjp,sdp-jvp-func,sdp-jvp,sdp-jvp-half")
+    ap.add_argument("--csv", default=None, help="append the medians and ratios to this CSV")
+    ap.add_argument("--setting", default="synthetic", help="name of this setting in the CSV")
     a = ap.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -116,11 +123,34 @@ def main():
           f"cpus={os.cpu_count()} load={os.getloadavg()[0]:.1f} rounds={a.rounds}")
     ref = statistics.median(times["dp"]) if "dp" in times else None
     cref = statistics.median(cpu["dp"]) if "dp" in cpu else None
+    rows = []
     for m in modes:
         med, lo, cmed = statistics.median(times[m]), min(times[m]), statistics.median(cpu[m])
         ratio = f"  ratio to dp {med / ref:.2f} (min-based {lo / min(times['dp']):.2f})" if ref else ""
         cratio = f"  ratio {cmed / cref:.2f}" if cref else ""
         print(f"{m:14s} wall: median {med:.3f} s  min {lo:.3f} s{ratio} | CPU time: median {cmed:.3f} s{cratio}")
+        rows.append({"setting": a.setting, "mode": m, "batch": a.batch, "horizon": a.horizon,
+                     "wall_median_s": med, "cpu_median_s": cmed,
+                     "wall_ratio_to_dp": med / ref if ref else float("nan"),
+                     "cpu_ratio_to_dp": cmed / cref if cref else float("nan"), "rounds": a.rounds,
+                     "threads": torch.get_num_threads(), "load": round(os.getloadavg()[0], 1),
+                     "torch": torch.__version__})
+    if a.csv:
+        write_csv(a.csv, a.setting, rows)
+
+
+def write_csv(path: str, setting: str, rows: list[dict]) -> None:
+    """Replace the rows of ``setting`` in the CSV at ``path`` (created if missing) by ``rows``."""
+    import pandas as pd
+
+    from sdp_cli.data.artifacts import atomic_write_bytes
+
+    new = pd.DataFrame(rows)
+    if os.path.exists(path):
+        old = pd.read_csv(path)
+        new = pd.concat([old[old.setting != setting], new], ignore_index=True)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    atomic_write_bytes(path, lambda f: new.to_csv(f, index=False, float_format="%.6g"))
 
 
 if __name__ == "__main__":

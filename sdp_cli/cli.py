@@ -341,16 +341,24 @@ def pipeline_cmd(
 @app.command("report")
 @clean_errors
 def report_cmd(
-    runs: Annotated[Path, typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")],
+    runs: Annotated[Optional[Path], typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")] = None,
     out: Annotated[Path, typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG).")] = Path("results"),
     experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the last iteration's mean costs and success per task and method as JSON (DVC metrics).")] = None,
+    ledger: Annotated[Optional[Path], typer.Option(help="Then (re)write the claims ledger, e.g. results/PAPER.md, from the reports in its folder (*/all_runs.csv, bench/*.csv) and its claims.yaml.")] = None,
 ) -> None:
-    """Write the paper's tables and figures from whatever runs exist."""
-    from sdp_cli.report.make import make_report
+    """Write the paper's tables and figures from whatever runs exist, and the claims ledger."""
+    if runs is None and ledger is None:
+        raise SdpError("nothing to do: give --runs (a report) and/or --ledger (the claims ledger)")
+    if runs is not None:
+        from sdp_cli.report.make import make_report
 
-    files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics)
-    typer.echo(f"wrote {len(files)} files to {out}")
+        files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics)
+        typer.echo(f"wrote {len(files)} files to {out}")
+    if ledger is not None:
+        from sdp_cli.report.ledger import write_ledger
+
+        typer.echo(f"wrote {write_ledger(ledger)}")
 
 
 def main() -> None:  # pragma: no cover - entry point

@@ -192,7 +192,8 @@ def _named(path) -> Path | None:
 
 def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
-    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess)."""
+    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess);
+    one panel per TO baseline the runs evaluated (multiple shooting; single shooting)."""
     d = df[df.task == task]
     if d.empty:
         return []
@@ -204,36 +205,39 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         if f is None:
             continue
         a, _ = load_npz(f, kind="dataset")
-        if "inst_pol_iterations" not in a:
-            continue
-        pi, bi = a["inst_pol_iterations"], a["inst_base_iterations"]
-        rows += [{"method": r.method, "guess": "policy", "iterations": int(v)} for v in pi[pi >= 0]]
-        rows += [{"method": r.method, "guess": "naive", "iterations": int(v)} for v in bi[bi >= 0]]
+        for solver, pre in (("multiple shooting", "inst_"), ("single shooting", "inst_ss_")):
+            if pre + "pol_iterations" not in a:
+                continue
+            pi, bi = a[pre + "pol_iterations"], a[pre + "base_iterations"]
+            rows += [{"solver": solver, "method": r.method, "guess": "policy", "iterations": int(v)} for v in pi[pi >= 0]]
+            rows += [{"solver": solver, "method": r.method, "guess": "naive", "iterations": int(v)} for v in bi[bi >= 0]]
     if not rows:
         return []
     tab = pd.DataFrame(rows)
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    solvers = [s for s in ("multiple shooting", "single shooting") if s in set(tab.solver)]
+    fig, axes = plt.subplots(1, len(solvers), figsize=(6 * len(solvers), 4), squeeze=False)
     hi = max(int(tab.iterations.max()), 1)
-    bins = np.unique(np.geomspace(1, hi + 1, 25).astype(int))
-    base = tab[tab.guess == "naive"]
-    # TO alone is the same solve for every method (same test instances): show it once
-    first = sorted(tab.method.unique())[0]
-    base = base[base.method == first].iterations
-    ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
-            label=f"TO alone (naive guess), mean {base.mean():.0f}")
-    for method, g in tab[tab.guess == "policy"].groupby("method"):
-        ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method),
-                label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
-    ax.set_xscale("log")
+    bins = np.unique(np.geomspace(1, hi + 1, 30).astype(int))
     lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
-    ax.set_xlim(lo_x, hi_x)
-    _log_ticks(ax.xaxis, lo_x, hi_x)
-    ax.set_xlabel("TO iterations")
-    ax.set_ylabel("instances")
+    for ax, solver in zip(axes[0], solvers):
+        t = tab[tab.solver == solver]
+        base = t[t.guess == "naive"]
+        # TO alone is the same solve for every method (same test instances): show it once
+        base = base[base.method == sorted(t.method.unique())[0]].iterations
+        ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
+                label=f"TO alone (naive guess), mean {base.mean():.0f}")
+        for method, g in t[t.guess == "policy"].groupby("method"):
+            ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method),
+                    label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
+        ax.set_xscale("log")
+        ax.set_xlim(lo_x, hi_x)
+        _log_ticks(ax.xaxis, lo_x, hi_x)
+        ax.set_xlabel(f"TO iterations, {solver}")
+        ax.set_ylabel("instances")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
-    ax.set_title(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
+    fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
@@ -243,7 +247,12 @@ TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "poli
            "refined_iterations_mean": "TO iterations warm-started by the policy", "rollout_time_per_instance": "rollout time (s)",
            "refined_solve_time_mean": "solving time (s)", "total_time": "total time (s)",
            "to_alone_cost_mean": "TO alone cost", "to_alone_iterations_mean": "TO alone iterations",
-           "to_alone_solve_time_mean": "TO alone time (s)"}
+           "to_alone_solve_time_mean": "TO alone time (s)",
+           # the single-shooting baseline (the paper's solver family), when the run evaluated it
+           "ss_refined_cost_mean": "single shooting: refined cost", "ss_refined_iterations_mean": "single shooting: TO iterations warm-started",
+           "ss_refined_solve_time_mean": "single shooting: solving time (s)", "ss_to_alone_cost_mean": "single shooting: TO alone cost",
+           "ss_to_alone_converged_rate": "single shooting: TO alone converged",
+           "ss_to_alone_iterations_mean": "single shooting: TO alone iterations", "ss_to_alone_solve_time_mean": "single shooting: TO alone time (s)"}
 
 
 def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
@@ -253,7 +262,7 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     d = d[d.iteration == d.iteration.max()]
     d = d[d.epochs == d.epochs.max()]
     d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
-    cols = [c for c in TABLE2C if c in d]
+    cols = [c for c in TABLE2C if c in d and d[c].notna().any()]
     tab = d.groupby(["method", "t_a"])[cols].mean().reset_index().sort_values(["method", "t_a"])
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
     return [_save_csv(tab, out / f"table2c_{task}.csv"),

@@ -1,0 +1,108 @@
+"""The claims ledger (results/PAPER.md): in sync with the committed reports, and its rules.
+
+The first test regenerates the ledger from the committed ``results/*/all_runs.csv``,
+``results/bench/*.csv`` and ``results/claims.yaml`` and compares it byte for byte with the committed
+``results/PAPER.md``: a report re-made without re-writing the ledger (or a hand edit) fails it.
+The others check the verdict rules on synthetic report rows.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.errors import SdpError
+from sdp_cli.report.ledger import fig2_only_sdp, ledger_rows, ratio_verdict, read_claims, speedup, write_ledger
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "results"
+runner = CliRunner()
+
+
+def _copy_reports(dst: Path) -> None:
+    for p in list(RESULTS.glob("*/all_runs.csv")) + list(RESULTS.glob("bench/*.csv")) + [RESULTS / "claims.yaml"]:
+        (dst / p.relative_to(RESULTS)).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(p, dst / p.relative_to(RESULTS))
+
+
+def test_committed_ledger_is_regenerated_from_the_committed_reports(tmp_path):
+    _copy_reports(tmp_path)
+    out = write_ledger(tmp_path / "PAPER.md")
+    assert out.read_text() == (RESULTS / "PAPER.md").read_text(), \
+        "results/PAPER.md is stale: run `sdp report --ledger results/PAPER.md`"
+
+
+def test_every_claim_has_a_row_and_a_verdict():
+    claims = read_claims(RESULTS / "claims.yaml")
+    assert [c["id"] for c in claims] == list(range(1, 14))
+    text = (RESULTS / "PAPER.md").read_text()
+    for c in claims:
+        assert f"| {c['id']} | {c['claim']} |" in text
+    rows = [ln for ln in text.splitlines() if ln.startswith("| ") and ln.split("|")[1].strip().isdigit()]
+    assert len(rows) == 13
+    assert all(any(f"**{v}**" in r for v in ("reproduced", "partly", "not reproduced", "not run")) for r in rows)
+
+
+def test_ratio_rule():
+    assert ratio_verdict(10.0, 18.6) == "reproduced"      # 9.0 >= 17.6 / 2
+    assert ratio_verdict(9.0, 18.6) == "partly"
+    assert ratio_verdict(2.8, 18.6) == "partly"           # 1.8 >= 1.76
+    assert ratio_verdict(1.05, 18.6) == "not reproduced"
+    assert ratio_verdict(0.5, 2.0) == "not reproduced"
+    assert ratio_verdict(float("nan"), 2.0) == "not reproduced"
+
+
+def _fig2_rows(dp_success: float, sdp_done: int = 5) -> pd.DataFrame:
+    """Synthetic fig2 report rows: SDP and DP, 2 seeds, 5 iterations; seed 1 of SDP stops at ``sdp_done``."""
+    rows = []
+    for method, succ, cost in (("sdp", 0.9, 31.0), ("dp", dp_success, 80.0)):
+        for seed in (0, 1):
+            n_it = sdp_done if (method == "sdp" and seed == 1) else 5
+            for it in range(n_it):
+                rows.append(dict(task="double_pendulum", method=method, train_seed=seed, iteration=it, t_a=4,
+                                 run=f"double_pendulum-{method}-n30-s{seed}", policy_cost_mean=cost + 10 * max(0, 2 - it),
+                                 success_rate=succ, refined_cost_mean=30.5, to_alone_solve_time_mean=0.3,
+                                 refined_solve_time_mean=0.1, ss_to_alone_solve_time_mean=1.0,
+                                 ss_refined_solve_time_mean=0.6))
+    return pd.DataFrame(rows)
+
+
+def test_only_sdp_solves_needs_every_method_and_failing_baselines():
+    r = fig2_only_sdp({"fig2": _fig2_rows(dp_success=0.1)})
+    assert r.verdict == "partly" and "pddp" in r.detail            # PDDP and PDDP+S not run
+    r = fig2_only_sdp({"fig2": _fig2_rows(dp_success=0.7)})
+    assert r.verdict == "partly" and "DP 80" in r.ours              # DP solves it too
+    d = _fig2_rows(dp_success=0.1)
+    more = []
+    for m in ("pddp", "pddp_s"):
+        e = d[d.method == "dp"].copy()
+        e["method"], e["run"] = m, e.run.str.replace("-dp-", f"-{m}-")
+        more.append(e)
+    assert fig2_only_sdp({"fig2": pd.concat([d, *more])}).verdict == "reproduced"
+
+
+def test_unfinished_runs_are_left_out_and_named():
+    r = speedup({"fig2": _fig2_rows(dp_success=0.1, sdp_done=3)})
+    assert "(1 seed)" in r.ours and "double_pendulum-sdp-n30-s1" in r.detail
+    # multiple shooting 3x (reproduced), single shooting 1.67x (partly)
+    assert r.verdict == "partly"
+
+
+def test_runs_without_a_rule_and_bad_claims_files_fail_cleanly(tmp_path):
+    claims = [{"id": 2, "claim": "c", "paper": "p", "experiment": "fig1", "not_run": "est"}]
+    assert ledger_rows({}, claims)[0]["verdict"] == "not run"
+    assert ledger_rows({}, claims)[0]["detail"] == "est"
+    with pytest.raises(SdpError, match="no rule"):
+        ledger_rows({"fig1": pd.DataFrame()}, claims)
+    (tmp_path / "claims.yaml").write_text(yaml.safe_dump({"claims": [{"id": 1}]}))
+    r = runner.invoke(app, ["report", "--ledger", str(tmp_path / "PAPER.md")])
+    assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert not (tmp_path / "PAPER.md").exists()
+    r = runner.invoke(app, ["report"])
+    assert r.exit_code == 1 and "nothing to do" in r.output
