@@ -174,7 +174,8 @@ def _interp(cal: tuple, B: int) -> float:
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
              root: Path = Path(".")) -> tuple[pd.DataFrame, dict]:
     """Per-run estimate of experiment ``name`` and the totals (see the module docstring)."""
-    from sdp_cli.pipeline import load_experiment, loop_configs
+    from sdp_cli.experiment import load_experiment
+    from sdp_cli.pipeline import loop_configs
     from sdp_cli.tasks import get_task
 
     if workers <= 0:

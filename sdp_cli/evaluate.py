@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, load_npz, load_timing, save_timing, timing_path
+from sdp_cli.data.artifacts import (json_default, atomic_write_bytes, file_sha256, load_npz, load_timing, save_timing,
+                                    timing_path)
 from sdp_cli.errors import SdpError
 
 
@@ -140,15 +141,22 @@ def write_metrics(row: dict, out: str | os.PathLike) -> Path:
 
 def evaluation_artifacts(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None) -> dict:
     """The files an evaluation row comes from, as absolute paths (None where unknown): the
-    rollouts, their refinement, the policy checkpoint that made them and its training dataset."""
+    rollouts, their refinement, the policy checkpoint that made them and its training dataset;
+    ``git_rev``: the code revision recorded in the rollouts (and the refinement's when it differs,
+    ``rollouts_rev+refined_rev``), i.e. the code that computed the row, not the one that wrote it."""
     _, meta = load_npz(rollouts, kind="rollout")
 
     def existing(p):
         return str(Path(p).resolve()) if p and Path(p).exists() else None
 
+    revs = [(meta.get("provenance") or {}).get("git_rev") or "unknown"]
+    if refined is not None and Path(refined).exists():
+        _, rmeta = load_npz(refined, kind="dataset")
+        rrev = (rmeta.get("provenance") or {}).get("git_rev") or "unknown"
+        revs += [rrev] if rrev != revs[0] else []
     return {"rollouts": existing(rollouts), "refined": existing(refined),
             "policy": existing((meta.get("config") or {}).get("policy")),
-            "data": existing((meta.get("policy_dataset") or {}).get("path"))}
+            "data": existing((meta.get("policy_dataset") or {}).get("path")), "git_rev": "+".join(revs)}
 
 
 def manifest_path(csv: str | os.PathLike) -> Path:
@@ -173,21 +181,17 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
         folder = out.resolve().parent
         entries = []
         for i, (row, art) in enumerate(zip(rows, artifacts)):
-            rel = {k: (os.path.relpath(v, folder) if v else None) for k, v in art.items()}
+            rel = {k: (os.path.relpath(v, folder) if v else None) if k in ARTIFACT_KEYS else v for k, v in art.items()}
             entries.append({"row": i, "run": row.get("run"), "iteration": int(row.get("iteration") or 0),
                             "method": row.get("method"), "task": row.get("task"), "seed": row.get("train_seed"),
                             "t_a": row.get("t_a"), "epochs": row.get("epochs"), **rel})
+        # git_rev: the code that computed the rows (from their artifacts), one value when they agree
+        revs = sorted({str(e.get("git_rev") or code_revision()) for e in entries}) or [code_revision()]
         man = {"format": "sdp-evaluation-manifest", "format_version": 1, "eval": out.name,
-               "git_rev": code_revision(), "entries": entries}
-        text = json.dumps(man, indent=1, default=_plain).encode()
+               "git_rev": revs[0] if len(revs) == 1 else ",".join(revs), "entries": entries}
+        text = json.dumps(man, indent=1, default=json_default).encode()
         atomic_write_bytes(manifest_path(out), lambda f: f.write(text))
     return path
-
-
-def _plain(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
 def read_manifest(path: str | os.PathLike) -> dict:

@@ -39,8 +39,7 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.experiment import (GROUP_DEFAULTS, PIPELINES_DIR, check_group, load_experiment,  # noqa: F401
-                                run_name, run_names)
+from sdp_cli.experiment import check_group, load_experiment, run_name
 
 #: TrainConfig fields a group sets elsewhere (``train:`` may set the others)
 _GROUP_OWNED = {"method", "epochs", "seed", "T_h", "save_at"}

@@ -75,7 +75,8 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     per-run function (tests substitute one that kills its worker once)."""
     from sdp_cli.executor import check_executor_options, error_status, make_executor
     from sdp_cli.loop import check_resume
-    from sdp_cli.pipeline import load_experiment, loop_configs
+    from sdp_cli.experiment import load_experiment
+    from sdp_cli.pipeline import loop_configs
     from sdp_cli.progress import count_progress
 
     executor, workers, scheduler = executor_options(executor, workers, scheduler)

@@ -49,3 +49,35 @@ def test_artifacts_record_the_last_commit_of_the_code(tmp_path):
     assert code_revision_of(tmp_path) == rev + "+dirty"
     _git(tmp_path, "commit", "-q", "-am", "code 2")
     assert code_revision_of(tmp_path) == revision_of(tmp_path) != rev
+
+
+def test_evaluation_manifest_names_the_code_that_computed_the_rows(tmp_path, monkeypatch):
+    """A loop resumed at a later commit rewrites eval.csv and its manifest; the manifest must still
+    name the revision recorded in the rollouts (and the refinement, when it differs), not the
+    revision of the code that re-wrote the CSV."""
+    import json
+
+    import numpy as np
+
+    import sdp_cli.data.artifacts as art
+    from sdp_cli.evaluate import evaluation_artifacts, manifest_path, write_evaluation
+
+    def at(rev):      # provenance is cached per process: patch it and the revision the manifest falls back on
+        monkeypatch.setattr(art, "provenance", lambda: {"git_rev": rev})
+        monkeypatch.setattr(art, "code_revision", lambda: rev)
+
+    def saved_at(rev, path, kind):
+        at(rev)
+        art.save_npz(path, {"X": np.zeros((2, 3))}, kind=kind)
+
+    saved_at("a" * 40, tmp_path / "rollout.npz", "rollout")
+    saved_at("a" * 40, tmp_path / "refined_same.npz", "dataset")
+    saved_at("b" * 40, tmp_path / "refined_later.npz", "dataset")
+    at("c" * 40)     # the code re-writing the CSV
+    rows = [{"run": "r", "iteration": 0, "t_a": 4}, {"run": "r", "iteration": 0, "t_a": 8}]
+    arts = [evaluation_artifacts(tmp_path / "rollout.npz", tmp_path / "refined_same.npz"),
+            evaluation_artifacts(tmp_path / "rollout.npz", tmp_path / "refined_later.npz")]
+    man = json.loads(manifest_path(write_evaluation(rows, tmp_path / "eval.csv", arts)).read_text())
+    assert [e["git_rev"] for e in man["entries"]] == ["a" * 40, "a" * 40 + "+" + "b" * 40]
+    assert "c" * 40 not in json.dumps(man)
+    assert man["git_rev"] == "a" * 40 + "," + "a" * 40 + "+" + "b" * 40

@@ -10,7 +10,8 @@ import yaml
 
 from sdp_cli.errors import SdpError
 from sdp_cli.experiment import run_names
-from sdp_cli.pipeline import expand, load_experiment, loop_configs, select_experiment
+from sdp_cli.experiment import load_experiment
+from sdp_cli.pipeline import expand, loop_configs, select_experiment
 from sdp_cli.tasks import task_names
 
 ROOT = Path(__file__).resolve().parents[1]

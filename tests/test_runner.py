@@ -69,7 +69,8 @@ def _same_runs(a, b):
 
 
 def test_runs_of_an_experiment_are_loop_configs(root):
-    from sdp_cli.pipeline import expand, load_experiment
+    from sdp_cli.experiment import load_experiment
+    from sdp_cli.pipeline import expand
 
     spec = load_experiment("tiny", root)
     cfgs = loop_configs("tiny", spec)

@@ -128,7 +128,8 @@ def runtime_provenance() -> dict[str, Any]:
     return out
 
 
-def _json_default(o):
+def json_default(o):
+    """``json.dumps`` default for artifact metadata: numpy scalars and arrays, paths."""
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
@@ -210,7 +211,7 @@ def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
     meta = {"kind": kind, "format_version": FORMAT_VERSION,
             "provenance": runtime_provenance(), "config": config or {}, **extra_meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
-    payload["__meta__"] = np.array(json.dumps(meta, default=_json_default))
+    payload["__meta__"] = np.array(json.dumps(meta, default=json_default))
     out = atomic_write_bytes(path, lambda f: _write_npz(f, payload))
     if timing is not None:
         save_timing(path, timing)
@@ -242,7 +243,7 @@ def timing_path(path: str | os.PathLike) -> Path:
 def save_timing(path: str | os.PathLike, timing: dict[str, Any]) -> Path:
     """Write the timing sidecar of ``path`` (adds ``created``, the UTC time of writing)."""
     rec = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **timing}
-    data = json.dumps(rec, default=_json_default, indent=1).encode()
+    data = json.dumps(rec, default=json_default, indent=1).encode()
     return atomic_write_bytes(timing_path(path), lambda f: f.write(data))
 
 

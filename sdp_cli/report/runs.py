@@ -39,9 +39,10 @@ def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
             raise SdpError(f"{path} describes {len(entries)} rows but {man['eval']} has {len(df)}")
         for k in ("run", "iteration", *ARTIFACT_KEYS):
             df[k] = [e.get(k) for e in entries]
+        # the code that computed each row (from its artifacts); older manifests: the manifest's
+        df["git_rev"] = [e.get("git_rev") or man.get("git_rev", "unknown") for e in entries]
         df["run"] = df["run"].where(df["run"].notna(), path.parent.name)
         df["iteration"] = df["iteration"].fillna(0).astype(int)
-        df["git_rev"] = man.get("git_rev", "unknown")
         df["source"] = str(path.parent)
         frames.append(df)
     unnamed = sum(1 for _ in root.rglob("eval.csv")) - len(frames)
