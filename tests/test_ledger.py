@@ -106,3 +106,30 @@ def test_runs_without_a_rule_and_bad_claims_files_fail_cleanly(tmp_path):
     assert not (tmp_path / "PAPER.md").exists()
     r = runner.invoke(app, ["report"])
     assert r.exit_code == 1 and "nothing to do" in r.output
+
+
+def test_fig1_and_k_ablation_rules():
+    from sdp_cli.report.ledger import k_steps, sdp_reaches_to
+
+    def fig1(never: str | None = None):
+        rows = []
+        for task in ("pendulum", "ur5", "quadrotor-0"):
+            for n in (2, 4, 8):
+                for seed in (0, 1):
+                    cost = 100.0 if task == never else 10.0 * (1 + 8 / n) - 8   # 42, 22, 12 vs TO alone 11
+                    rows.append(dict(task=task, method="sdp", n_traj=n, epochs=2000, train_seed=seed, iteration=0,
+                                     policy_cost_mean=cost, to_alone_cost_mean=11.0))
+        return pd.DataFrame(rows)
+
+    r = sdp_reaches_to({"fig1": fig1()})
+    assert r.verdict == "reproduced" and r.ours.count("from n_traj 8") == 3
+    r = sdp_reaches_to({"fig1": fig1(never="ur5")})
+    assert r.verdict == "partly" and "ur5: TO alone 11, SDP within 10% from n_traj never" in r.ours
+
+    def ablation(c5: float):
+        return pd.DataFrame([dict(k_rollout=k, epochs=2000, train_seed=s, policy_cost_mean=c, success_rate=0.9,
+                                  to_alone_cost_mean=14.0)
+                             for k, c in ((2, 30.0), (5, c5), (10, 15.0)) for s in (0, 1, 2)])
+
+    assert k_steps({"ablation_k": ablation(16.0)}).verdict == "reproduced"
+    assert k_steps({"ablation_k": ablation(17.0)}).verdict == "not reproduced"      # 13% above K = 10
