@@ -21,11 +21,13 @@ CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
 
 
 def _log_ticks(axis, lo: float, hi: float) -> None:
-    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... as plain
+    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... (finer over about a decade) as plain
     numbers, no minor labels."""
     from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
 
     ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 2, 5) if lo <= m * 10 ** e <= hi]
+    if len(ticks) < 4:   # about a decade: finer steps, so that the lower values can be read
+        ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 1.5, 2, 3, 4, 5, 7) if lo <= m * 10 ** e <= hi]
     axis.set_major_locator(FixedLocator(ticks))
     axis.set_major_formatter(StrMethodFormatter("{x:g}"))
     axis.set_minor_formatter(NullFormatter())
