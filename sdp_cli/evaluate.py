@@ -1,7 +1,8 @@
 """``sdp evaluate``: one tidy row per run from a rollout artifact and its refinement.
 
 Columns: method, task, n_traj, epochs, t_a, k_rollout, seed, n, mean/median policy cost,
-success rate (reached the goal without diverging), divergences, max constraint violation,
+success rate (reached the goal without diverging), divergences, max constraint violation, the share of
+rollouts violating a constraint (``violation_rate``) and the median final distance to the goal,
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
@@ -44,6 +45,8 @@ def _mean(a) -> float:
 #: manifest file of an evaluation CSV (``eval.csv`` -> ``eval.manifest.json``) and the files it names
 MANIFEST_SUFFIX = ".manifest.json"
 ARTIFACT_KEYS = ("rollouts", "refined", "policy", "data")
+#: constraint violation above which a rollout counts as violating (the optimizer's feasibility tolerance)
+VIOLATION_TOL = 1e-6
 
 
 def is_timing_column(name: str) -> bool:
@@ -77,6 +80,11 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "success_rate": float(np.mean(r["reached"])),
         "diverged": int(np.sum(r["diverged"])),
         "max_violation": float(np.max(np.where(np.isfinite(r["max_violation"]), r["max_violation"], np.inf))),
+        # share of rollouts that break a constraint (an obstacle, the floor or ceiling) beyond the solver's
+        # feasibility tolerance; diverged rollouts count as violating
+        "violation_rate": float(np.mean(~(np.asarray(r["max_violation"], float) <= VIOLATION_TOL))),
+        "goal_distance_median": (float(np.nanmedian(r["goal_distance"]))
+                                 if "goal_distance" in r and np.isfinite(r["goal_distance"]).any() else float("nan")),
         "rollout_time": float(r.get("rollout_time", load_timing(rollouts).get("rollout_time", np.nan))),
     }
     row["rollout_time_per_instance"] = row["rollout_time"] / len(cost)

@@ -81,3 +81,4 @@ def test_evaluation_manifest_names_the_code_that_computed_the_rows(tmp_path, mon
     assert [e["git_rev"] for e in man["entries"]] == ["a" * 40, "a" * 40 + "+" + "b" * 40]
     assert "c" * 40 not in json.dumps(man)
     assert man["git_rev"] == "a" * 40 + "," + "a" * 40 + "+" + "b" * 40
+

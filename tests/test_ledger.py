@@ -133,3 +133,27 @@ def test_fig1_and_k_ablation_rules():
 
     assert k_steps({"ablation_k": ablation(16.0)}).verdict == "reproduced"
     assert k_steps({"ablation_k": ablation(17.0)}).verdict == "not reproduced"      # 13% above K = 10
+
+
+def test_quadrotor_rules_per_layout():
+    from sdp_cli.report.ledger import quadrotor9_times, quadrotor_precision
+
+    def fig4(dp_violates: float, layouts=("quadrotor-0", "quadrotor-1", "quadrotor-3", "quadrotor-9")):
+        rows = []
+        for task in layouts:
+            n_it = 5 if task == "quadrotor-9" else 1
+            for m, succ, viol, t_ref in (("sdp", 0.9, 0.0, 7.0), ("dp", 0.2, dp_violates, 9.0)):
+                for seed in (0, 1):
+                    for it in range(n_it):
+                        rows.append(dict(task=task, method=m, train_seed=seed, iteration=it, t_a=16,
+                                         run=f"{task}-{m}-s{seed}", success_rate=succ, violation_rate=viol,
+                                         goal_distance_median=0.01 if m == "sdp" else 0.4,
+                                         to_alone_solve_time_mean=16.0, refined_solve_time_mean=t_ref))
+        return pd.DataFrame(rows)
+
+    r = quadrotor_precision({"fig4": fig4(dp_violates=0.3)})
+    assert r.verdict == "reproduced" and "quadrotor-1: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%" in r.ours
+    assert quadrotor_precision({"fig4": fig4(dp_violates=0.3, layouts=("quadrotor-0",))}).verdict == "partly"
+    r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
+    assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
+    assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"

@@ -70,16 +70,17 @@ def ratio_verdict(r: float, paper: float) -> str:
 
 
 def _last(d: pd.DataFrame) -> pd.DataFrame:
-    """The final loop iteration at the loop's T_a, of the runs that reached it (one row per method and
-    seed); the final iteration is the last one any run of the experiment reached."""
-    d = _loop_t_a(d)
-    return d[d.iteration == d.iteration.max()]
+    """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
+    and seed); a task's final iteration is the last one any of its runs reached."""
+    d = pd.concat([_loop_t_a(g) for _, g in d.groupby("task")]) if len(d) else d
+    return d[d.iteration == d.groupby("task").iteration.transform("max")]
 
 
 def _unfinished(d: pd.DataFrame) -> str:
-    """``"; runs not finished: ..."`` for runs that have not reached the experiment's final iteration."""
-    last = d.groupby("run").iteration.max()
-    todo = sorted(last[last < d.iteration.max()].index)
+    """``"runs not finished (left out): ..."`` for runs that have not reached their task's final iteration."""
+    last = d.groupby(["task", "run"]).iteration.max()
+    final = d.groupby("task").iteration.max()
+    todo = sorted(run for (task, run), it in last.items() if it < final[task])
     return f"runs not finished (left out): {', '.join(todo)}" if todo else ""
 
 
@@ -174,14 +175,14 @@ def speedup(res) -> Row:
         if exp not in res:
             continue
         last = _last(res[exp])
-        sdp = last[last.method == "sdp"]
-        for name, to, ref in (("multiple shooting", "to_alone_solve_time_mean", "refined_solve_time_mean"),
-                              ("single shooting", "ss_to_alone_solve_time_mean", "ss_refined_solve_time_mean")):
-            if ref not in sdp or sdp[ref].isna().all():
-                continue
-            r = (sdp[to] / sdp[ref]).groupby(sdp.train_seed).mean()
-            parts.append(f"{exp} {name}: {fmt(r, unit='x')}")
-            verdicts.append("reproduced" if r.mean() >= 2 else "partly" if r.mean() > 1 else "not reproduced")
+        for (task, sdp) in last[last.method == "sdp"].groupby("task"):
+            for name, to, ref in (("multiple shooting", "to_alone_solve_time_mean", "refined_solve_time_mean"),
+                                  ("single shooting", "ss_to_alone_solve_time_mean", "ss_refined_solve_time_mean")):
+                if ref not in sdp or sdp[ref].isna().all():
+                    continue
+                r = (sdp[to] / sdp[ref]).groupby(sdp.train_seed).mean()
+                parts.append(f"{exp} {task} {name}: {fmt(r, unit='x')}")
+                verdicts.append("reproduced" if r.mean() >= 2 else "partly" if r.mean() > 1 else "not reproduced")
     if not parts:
         return Row("", "not run")
     verdict = "reproduced" if all(v == "reproduced" for v in verdicts) else "not reproduced" if all(
@@ -216,6 +217,53 @@ def k_steps(res) -> Row:
                "rule: K=5 within 10% of K=10's mean cost")
 
 
+def quadrotor_precision(res) -> Row:
+    """Claim 9 (Fig. 4): per quadrotor layout, success (reaching the target) and the share of rollouts
+    that break a constraint (obstacles, floor, ceiling), SDP vs DP, at the last iteration."""
+    last = _last(res["fig4"])
+    parts, ok, tasks = [], [], sorted(t for t in last.task.unique() if str(t).startswith("quadrotor"))
+    for task in tasks:
+        g = last[last.task == task]
+        by = {m: g[g.method == m] for m in ("sdp", "dp")}
+        if any(x.empty for x in by.values()):
+            parts.append(f"{task}: SDP or DP missing")
+            continue
+        s = {m: _per_seed(x, "success_rate").mean() for m, x in by.items()}
+        v = {m: _per_seed(x, "violation_rate").mean() for m, x in by.items()}
+        dist = {m: x.goal_distance_median.median() for m, x in by.items()}
+        ok.append(s["sdp"] >= SOLVED and s["sdp"] > s["dp"] and (task == "quadrotor-0" or v["dp"] >= v["sdp"]))
+        parts.append(f"{task}: success SDP {100 * s['sdp']:.0f}% vs DP {100 * s['dp']:.0f}%, constraint violated "
+                     f"SDP {100 * v['sdp']:.0f}% vs DP {100 * v['dp']:.0f}%, final distance SDP {dist['sdp']:.2g} m "
+                     f"vs DP {dist['dp']:.2g} m")
+    full = {"quadrotor-0", "quadrotor-1", "quadrotor-3"} <= set(tasks)
+    verdict = ("reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced")
+    return Row("; ".join(parts), verdict, "; ".join(x for x in (
+        "" if full else "layouts not run yet: " + ", ".join(sorted({"quadrotor-0", "quadrotor-1", "quadrotor-3"} - set(tasks))),
+        _unfinished(res["fig4"]), "rule: SDP solves (>= 50%), beats DP, and violates constraints no more often") if x))
+
+
+def quadrotor9_times(res) -> Row:
+    """Claim 10: quadrotor-9, mean TO solve time from the naive guess vs from the final SDP's and DP's rollouts."""
+    last = _last(res["fig4"])
+    q = last[last.task == "quadrotor-9"]
+    if q.empty:
+        return Row("", "not run", "quadrotor-9 not run yet")
+    parts, verdicts = [], []
+    for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
+        col = f"{pre}refined_solve_time_mean"
+        if col not in q or q[col].isna().all():
+            continue
+        to = q[f"{pre}to_alone_solve_time_mean"].mean()
+        t = {m: q[q.method == m][col].mean() for m in ("sdp", "dp") if (q.method == m).any()}
+        parts.append(f"{name}: TO alone {to:.3g} s, from SDP " + (f"{t['sdp']:.3g} s" if "sdp" in t else "n/a")
+                     + (f", from DP {t['dp']:.3g} s" if "dp" in t else ""))
+        if "sdp" in t:
+            verdicts.append(ratio_verdict(to / t["sdp"], 16.3 / 7.8))
+    verdict = ("reproduced" if verdicts and all(v == "reproduced" for v in verdicts) else "not reproduced"
+               if all(v == "not reproduced" for v in verdicts) else "partly")
+    return Row("; ".join(parts), verdict, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline")
+
+
 def sdp_reaches_to(res) -> Row:
     """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K=5)."""
     if "fig1" in res:
@@ -242,6 +290,7 @@ def sdp_reaches_to(res) -> Row:
 #: claim id -> (experiments it needs, function)
 CLAIMS = {1: (("fig1|ablation_k",), sdp_reaches_to), 5: (("fig2",), fig2_only_sdp), 6: (("fig2",), fig2_to_alone),
           7: (("fig2",), table2c), 11: (("bench/train_step",), epoch_cost), 12: (("ablation_k",), k_steps),
+          9: (("fig4",), quadrotor_precision), 10: (("fig4",), quadrotor9_times),
           13: (("fig2|fig3|fig4",), speedup)}
 
 
