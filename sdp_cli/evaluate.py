@@ -1,6 +1,6 @@
 """``sdp evaluate``: one tidy row per run from a rollout artifact and its refinement.
 
-Columns: method, task, n_traj, epochs, t_a, k_rollout, seed, n, mean/median policy cost,
+Columns: method, task, n_traj, epochs, t_a, k_rollout, horizon (T_h), seed, n, mean/median policy cost,
 success rate (reached the goal without diverging), divergences, max constraint violation, the share of
 rollouts violating a constraint (``violation_rate``) and the median final distance to the goal,
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
@@ -74,7 +74,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "task": rmeta.get("task"), "method": rmeta.get("method"),
         "n_traj": (rmeta.get("policy_dataset") or {}).get("n_traj"), "epochs": rmeta.get("policy_epoch"),
         "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
-        "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
+        "horizon": pcfg.get("T_h"), "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),
         "success_rate": float(np.mean(r["reached"])),

@@ -18,7 +18,8 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
-from sdp_cli.report.ledger import fig2_only_sdp, ledger_rows, ratio_verdict, read_claims, speedup, write_ledger
+from sdp_cli.report.claims import fig2_only_sdp, ratio_verdict, speedup
+from sdp_cli.report.ledger import ledger_rows, read_claims, write_ledger
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -95,11 +96,13 @@ def test_unfinished_runs_are_left_out_and_named():
 
 
 def test_runs_without_a_rule_and_bad_claims_files_fail_cleanly(tmp_path):
-    claims = [{"id": 2, "claim": "c", "paper": "p", "experiment": "fig1", "not_run": "est"}]
+    claims = [{"id": 99, "claim": "c", "paper": "p", "experiment": "fig9", "not_run": "est"}]
     assert ledger_rows({}, claims)[0]["verdict"] == "not run"
     assert ledger_rows({}, claims)[0]["detail"] == "est"
     with pytest.raises(SdpError, match="no rule"):
-        ledger_rows({"fig1": pd.DataFrame()}, claims)
+        ledger_rows({"fig9": pd.DataFrame()}, claims)
+    with pytest.raises(SdpError, match="claim 2: the reports lack"):         # a report without the columns
+        ledger_rows({"fig1": pd.DataFrame({"task": ["pendulum"]})}, [{"id": 2, "claim": "c", "paper": "p"}])
     (tmp_path / "claims.yaml").write_text(yaml.safe_dump({"claims": [{"id": 1}]}))
     r = runner.invoke(app, ["report", "--ledger", str(tmp_path / "PAPER.md")])
     assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
@@ -109,7 +112,7 @@ def test_runs_without_a_rule_and_bad_claims_files_fail_cleanly(tmp_path):
 
 
 def test_fig1_and_k_ablation_rules():
-    from sdp_cli.report.ledger import k_steps, sdp_reaches_to
+    from sdp_cli.report.claims import k_steps, sdp_reaches_to
 
     def fig1(never: str | None = None):
         rows = []
@@ -136,7 +139,7 @@ def test_fig1_and_k_ablation_rules():
 
 
 def test_quadrotor_rules_per_layout():
-    from sdp_cli.report.ledger import quadrotor9_times, quadrotor_precision
+    from sdp_cli.report.claims import quadrotor9_times, quadrotor_precision
 
     def fig4(dp_violates: float, layouts=("quadrotor-0", "quadrotor-1", "quadrotor-3", "quadrotor-9")):
         rows = []
@@ -157,3 +160,50 @@ def test_quadrotor_rules_per_layout():
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
     assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
     assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"
+
+
+def _fig1_rows():
+    """Synthetic fig1: SDP within 10% of TO alone from n_traj 4, DP from 32 (8x); PDDP+S diverges in half of
+    its evaluations and solves UR5(0, 0) at n_traj 8 and 16 only."""
+    rows = []
+    for task in ("pendulum", "ur5-fixed"):
+        for n in (1, 2, 3, 4, 8, 16, 32, 64):
+            for seed in (0, 1):
+                for m, cost, succ, div in (("sdp", 10.0 if n >= 4 else 20.0, 0.9 if n >= 3 else 0.1, 0),
+                                          ("dp", 10.0 if n >= 32 else 30.0, 0.1, 0),
+                                          ("pddp_s", 50.0, 0.9 if 8 <= n <= 16 else 0.0, seed)):
+                    rows.append(dict(task=task, method=m, n_traj=n, epochs=2000, train_seed=seed, iteration=0,
+                                     policy_cost_mean=cost, success_rate=succ, diverged=div, to_alone_cost_mean=10.0))
+    return pd.DataFrame(rows)
+
+
+def test_fig1_claims_on_synthetic_rows():
+    from sdp_cli.report.claims import dp_needs_more, mlp_unstable, pendulum_torque
+
+    r = dp_needs_more({"fig1": _fig1_rows()})
+    assert r.verdict == "reproduced" and "pendulum: SDP from n_traj 4, DP from 32 (8x)" in r.ours
+    d = _fig1_rows()
+    d.loc[(d.method == "dp"), "policy_cost_mean"] = 30.0                 # DP never: a lower bound 64 / 4
+    assert "DP never (> 16x)" in dp_needs_more({"fig1": d}).ours
+    r = pendulum_torque({"fig1": _fig1_rows()})
+    assert r.verdict == "reproduced" and "success 90%" in r.ours
+    r = mlp_unstable({"fig1": _fig1_rows()})
+    assert r.verdict == "reproduced" and "PDDP_S 50%" in r.ours and "solves at n_traj 8, 16" in r.ours
+
+
+def test_fig3_claim_per_horizon_and_action_length():
+    from sdp_cli.report.claims import ur5_long_actions
+
+    rows = []
+    for task in ("ur5-rinit", "ur5-rinit-rtgt"):
+        for h, t_a in ((32, 16), (32, 31), (64, 63)):
+            for it in range(5):
+                rows.append(dict(task=task, method="sdp", horizon=h, t_a=t_a, train_seed=0, iteration=it,
+                                 run=f"{task}-sdp-h{h}-ta{t_a}", success_rate=0.8, refined_iterations_mean=20,
+                                 to_alone_iterations_mean=60, refined_cost_mean=5.0, to_alone_cost_mean=6.0))
+    r = ur5_long_actions({"fig3": pd.DataFrame(rows)})
+    assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63): success 80%" in r.ours
+    d = pd.DataFrame(rows)
+    d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
+    r = ur5_long_actions({"fig3": d})
+    assert r.verdict == "partly" and "ur5-rinit-sdp-h64-ta63" in r.detail

@@ -4,11 +4,13 @@ The ledger reads what ``sdp report`` wrote, never a run folder: ``results/<exper
 (one row per run, iteration and T_a), ``results/bench/*.csv`` (speed ratios measured side by side by
 the ``bench/`` scripts) and ``results/claims.yaml`` (hand-written: each claim's text, the paper's number,
 the experiments it needs, the estimate of a run not made, and the notes that explain a difference).
-Our numbers and the verdicts are computed here, by rules that are the same for every claim:
+Our numbers and the verdicts are computed by the rules of :mod:`sdp_cli.report.claims`, the same for
+every claim:
 
 - a quantity is the mean over seeds with a 95% interval (normal approximation, :func:`mean_ci`);
 - a ratio claim r_paper > 1 is *reproduced* when ours keeps at least half of the paper's effect,
-  ``r - 1 >= (r_paper - 1) / 2``; *partly* with at least a tenth of it; otherwise *not reproduced*. A range claim ("2-20x") is reproduced from its lower end;
+  ``r - 1 >= (r_paper - 1) / 2``; *partly* with at least a tenth of it; otherwise *not reproduced*;
+  a range claim ("2-20x") is reproduced from its lower end;
 - a claim whose experiment has no report is *not run*, with the estimate from ``claims.yaml``;
   one with only part of its runs says *partly* and which part is missing.
 
@@ -18,26 +20,13 @@ T_a); "solves" means a success rate of at least 50% over the test instances.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
-from sdp_cli.report.figures import _loop_t_a
-from sdp_cli.report.runs import mean_ci
-
-SOLVED = 0.5          #: success rate from which a policy "solves" a task
-VERDICTS = ("reproduced", "partly", "not reproduced", "not run")
-
-
-@dataclass
-class Row:
-    ours: str
-    verdict: str
-    detail: str = ""     # what was measured beyond the headline number (shown in the notes column)
+from sdp_cli.report.claims import CLAIMS, Row
 
 
 def load_results(results: Path) -> dict[str, pd.DataFrame]:
@@ -48,250 +37,6 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     for p in sorted((results / "bench").glob("*.csv")):
         out[f"bench/{p.stem}"] = pd.read_csv(p)
     return out
-
-
-def fmt(values, digits: int = 3, pct: bool = False, unit: str = "") -> str:
-    """``mean ± ci (n seeds)`` of per-seed values."""
-    m, h, n = mean_ci(pd.Series(values, dtype=float))
-    if not np.isfinite(m):
-        return "diverged" if np.isinf(m) else "n/a"
-    f = (lambda v: f"{100 * v:.0f}%") if pct else (lambda v: f"{v:.{digits}g}{unit}")
-    ci = f" ± {f(h)}" if np.isfinite(h) else ""
-    return f"{f(m)}{ci} ({n} seed{'s' if n != 1 else ''})"
-
-
-def ratio_verdict(r: float, paper: float) -> str:
-    """Reproduced with at least half the paper's effect (r - 1), partly with at least a tenth of it."""
-    if not np.isfinite(r):
-        return "not reproduced"
-    if r - 1 >= (paper - 1) / 2:
-        return "reproduced"
-    return "partly" if r - 1 >= (paper - 1) / 10 else "not reproduced"
-
-
-def _last(d: pd.DataFrame) -> pd.DataFrame:
-    """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
-    and seed); a task's final iteration is the last one any of its runs reached."""
-    d = pd.concat([_loop_t_a(g) for _, g in d.groupby("task")]) if len(d) else d
-    return d[d.iteration == d.groupby("task").iteration.transform("max")]
-
-
-def _unfinished(d: pd.DataFrame) -> str:
-    """``"runs not finished (left out): ..."`` for runs that have not reached their task's final iteration."""
-    last = d.groupby(["task", "run"]).iteration.max()
-    final = d.groupby("task").iteration.max()
-    todo = sorted(run for (task, run), it in last.items() if it < final[task])
-    return f"runs not finished (left out): {', '.join(todo)}" if todo else ""
-
-
-def _per_seed(d: pd.DataFrame, col: str) -> pd.Series:
-    return d.groupby("train_seed")[col].mean()
-
-
-# ---------------------------------------------------------------------------- the claims' numbers
-def fig2_only_sdp(res) -> Row:
-    d = res["fig2"]
-    last = _last(d)
-    parts, solved = [], {}
-    for m in ("sdp", "dp", "pddp", "pddp_s"):
-        g = last[last.method == m]
-        if g.empty:
-            parts.append(f"{m.upper()}: not run")
-            continue
-        sr = _per_seed(g, "success_rate")
-        solved[m] = sr.mean() >= SOLVED
-        parts.append(f"{m.upper()} {fmt(_per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}")
-    sdp = _loop_t_a(d[d.method == "sdp"])
-    near = ""
-    if not sdp.empty and (sdp.iteration >= 2).any():
-        it3 = _per_seed(sdp[sdp.iteration == 2], "policy_cost_mean")
-        ref = _per_seed(last[last.method == "sdp"], "refined_cost_mean")
-        near_ok = it3.mean() <= 1.1 * ref.mean()
-        near = (f"; SDP after 3 iterations {fmt(it3)} vs its final refined {fmt(ref)} "
-                f"({'within' if near_ok else 'not within'} 10%)")
-    else:
-        near_ok = False
-    others = [m for m in ("dp", "pddp", "pddp_s") if m in solved]
-    if not solved.get("sdp"):
-        verdict = "not reproduced"
-    elif any(solved[m] for m in others):
-        verdict = "partly"
-    else:
-        verdict = "reproduced" if (len(others) == 3 and near_ok) else "partly"
-    missing = [m for m in ("dp", "pddp", "pddp_s") if m not in solved]
-    detail = "; ".join(x for x in (f"methods not run yet: {', '.join(missing)}" if missing else "", _unfinished(d)) if x)
-    return Row("; ".join(parts) + near, verdict, detail)
-
-
-def fig2_to_alone(res) -> Row:
-    last = _last(res["fig2"])
-    sdp = last[last.method == "sdp"]
-    fail_ms = 1 - sdp.to_alone_converged_rate.mean()
-    fail_ss = 1 - sdp.ss_to_alone_converged_rate.mean() if "ss_to_alone_converged_rate" in sdp else np.nan
-    it_ms = _per_seed(sdp, "refined_iterations_mean")
-    it_ss = _per_seed(sdp, "ss_refined_iterations_mean") if "ss_refined_iterations_mean" in sdp else pd.Series(dtype=float)
-    ours = (f"TO alone fails {100 * fail_ms:.0f}% (multiple shooting, {sdp.to_alone_iterations_mean.mean():.0f} it.), "
-            f"{100 * fail_ss:.0f}% (single shooting, {sdp.ss_to_alone_iterations_mean.mean():.0f} it.); "
-            f"refining the final SDP: {fmt(it_ms)} it. (multiple shooting), {fmt(it_ss)} it. (single shooting)")
-    ours += (f"; cost: TO alone {sdp.to_alone_cost_mean.mean():.3g} (multiple shooting), "
-             f"{sdp.ss_to_alone_cost_mean.mean():.3g} (single shooting), refined from the final SDP "
-             f"{fmt(_per_seed(sdp, 'refined_cost_mean'))}")
-    hits = [f >= 0.4 for f in (fail_ms, fail_ss) if np.isfinite(f)]
-    verdict = "reproduced" if hits and all(hits) else "partly" if any(hits) else "not reproduced"
-    return Row(ours, verdict, _unfinished(res["fig2"]))
-
-
-def table2c(res) -> Row:
-    d = res["fig2"]
-    d = d[(d.method == "sdp") & (d.iteration == d[d.method == "sdp"].iteration.max())]
-    if d.t_a.nunique() < 3:
-        return Row("T_a sweep not run yet", "not run")
-    by = d.groupby("t_a")
-    solve = by.refined_solve_time_mean.mean()
-    ss_solve = by.ss_refined_solve_time_mean.mean() if "ss_refined_solve_time_mean" in d else solve * np.nan
-    roll = by.rollout_time_per_instance.mean()
-    cost = by.policy_cost_mean.mean()
-    to_ms, to_ss = d.to_alone_solve_time_mean.mean(), d.ss_to_alone_solve_time_mean.mean()
-    t1 = min(solve.index)
-    r_ms, r_ss = to_ms / solve[t1], to_ss / ss_solve[t1]
-    lo = cost[cost.index <= 9].min()
-    hi = cost[cost.index >= 12]
-    degr = hi.max() / lo if len(hi) else np.nan
-    t9 = 9 if 9 in roll.index else roll.index[np.argmin(abs(roll.index - 9))]
-    ours = (f"T_a {t1}: refine {solve[t1]:.3g} s vs TO alone {to_ms:.3g} s ({r_ms:.1f}x, multiple shooting), "
-            f"{ss_solve[t1]:.3g} s vs {to_ss:.3g} s ({r_ss:.1f}x, single shooting); T_a {t9}: rollout "
-            f"{roll[t9]:.3g} s, solve {solve[t9]:.3g} s / {ss_solve[t9]:.3g} s; policy cost at T_a >= 12: "
-            + ", ".join(f"{c:.3g}" for c in hi) + f" vs best {lo:.3g} at T_a <= 9 ({degr:.2f}x)")
-    v = [ratio_verdict(r_ss, 4.1 / 0.22), ratio_verdict(degr, 137 / 33.5)]
-    verdict = "reproduced" if all(x == "reproduced" for x in v) else "not reproduced" if all(
-        x == "not reproduced" for x in v) else "partly"
-    return Row(ours, verdict, f"speed-up verdict (single shooting, the paper's solver family): {v[0]}; "
-                              f"degradation verdict: {v[1]}; times are per instance on our CPU")
-
-
-def speedup(res) -> Row:
-    parts, verdicts = [], []
-    for exp in ("fig2", "fig3", "fig4"):
-        if exp not in res:
-            continue
-        last = _last(res[exp])
-        for (task, sdp) in last[last.method == "sdp"].groupby("task"):
-            for name, to, ref in (("multiple shooting", "to_alone_solve_time_mean", "refined_solve_time_mean"),
-                                  ("single shooting", "ss_to_alone_solve_time_mean", "ss_refined_solve_time_mean")):
-                if ref not in sdp or sdp[ref].isna().all():
-                    continue
-                r = (sdp[to] / sdp[ref]).groupby(sdp.train_seed).mean()
-                parts.append(f"{exp} {task} {name}: {fmt(r, unit='x')}")
-                verdicts.append("reproduced" if r.mean() >= 2 else "partly" if r.mean() > 1 else "not reproduced")
-    if not parts:
-        return Row("", "not run")
-    verdict = "reproduced" if all(v == "reproduced" for v in verdicts) else "not reproduced" if all(
-        v == "not reproduced" for v in verdicts) else "partly"
-    return Row("; ".join(parts), verdict, "; ".join(x for x in (_unfinished(res["fig2"]) if "fig2" in res else "",) if x))
-
-
-def epoch_cost(res) -> Row:
-    b = res["bench/train_step"]
-    b = b[b["mode"] == "sdp-jvp"]
-    if b.empty:
-        return Row("", "not run", "results/bench/train_step.csv has no sdp-jvp row")
-    ok = [abs(r - 2) <= 0.5 for r in b.cpu_ratio_to_dp]
-    ours = "; ".join(f"{r.cpu_ratio_to_dp:.2f} ({r.setting}, load {r.load})" for r in b.itertuples())
-    return Row(f"SDP step / DP step, CPU time: {ours}", "reproduced" if all(ok) else "partly" if any(ok) else
-               "not reproduced", "bench/train_step.py, DP and SDP steps interleaved in one run, 1 thread; "
-               "an epoch is the same number of steps for both, so the step ratio is the epoch ratio")
-
-
-def k_steps(res) -> Row:
-    d = res["ablation_k"]
-    d = d[d.epochs == d.epochs.max()]
-    parts, means = [], {}
-    for k, g in d.groupby("k_rollout"):
-        means[int(k)] = g.policy_cost_mean.mean()
-        parts.append(f"K={int(k)}: {fmt(_per_seed(g, 'policy_cost_mean'))}, success {fmt(_per_seed(g, 'success_rate'), pct=True)}")
-    to = d.to_alone_cost_mean.mean()
-    if 5 not in means or 10 not in means:
-        return Row("; ".join(parts), "partly", "K=5 or K=10 missing")
-    verdict = "reproduced" if means[5] <= 1.1 * means[10] else "not reproduced"
-    return Row("; ".join(parts) + f" (TO alone {to:.3g}; {int(d.epochs.max())} epochs, n_traj 10)", verdict,
-               "rule: K=5 within 10% of K=10's mean cost")
-
-
-def quadrotor_precision(res) -> Row:
-    """Claim 9 (Fig. 4): per quadrotor layout, success (reaching the target) and the share of rollouts
-    that break a constraint (obstacles, floor, ceiling), SDP vs DP, at the last iteration."""
-    last = _last(res["fig4"])
-    parts, ok, tasks = [], [], sorted(t for t in last.task.unique() if str(t).startswith("quadrotor"))
-    for task in tasks:
-        g = last[last.task == task]
-        by = {m: g[g.method == m] for m in ("sdp", "dp")}
-        if any(x.empty for x in by.values()):
-            parts.append(f"{task}: SDP or DP missing")
-            continue
-        s = {m: _per_seed(x, "success_rate").mean() for m, x in by.items()}
-        v = {m: _per_seed(x, "violation_rate").mean() for m, x in by.items()}
-        dist = {m: x.goal_distance_median.median() for m, x in by.items()}
-        ok.append(s["sdp"] >= SOLVED and s["sdp"] > s["dp"] and (task == "quadrotor-0" or v["dp"] >= v["sdp"]))
-        parts.append(f"{task}: success SDP {100 * s['sdp']:.0f}% vs DP {100 * s['dp']:.0f}%, constraint violated "
-                     f"SDP {100 * v['sdp']:.0f}% vs DP {100 * v['dp']:.0f}%, final distance SDP {dist['sdp']:.2g} m "
-                     f"vs DP {dist['dp']:.2g} m")
-    full = {"quadrotor-0", "quadrotor-1", "quadrotor-3"} <= set(tasks)
-    verdict = ("reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced")
-    return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        "" if full else "layouts not run yet: " + ", ".join(sorted({"quadrotor-0", "quadrotor-1", "quadrotor-3"} - set(tasks))),
-        _unfinished(res["fig4"]), "rule: SDP solves (>= 50%), beats DP, and violates constraints no more often") if x))
-
-
-def quadrotor9_times(res) -> Row:
-    """Claim 10: quadrotor-9, mean TO solve time from the naive guess vs from the final SDP's and DP's rollouts."""
-    last = _last(res["fig4"])
-    q = last[last.task == "quadrotor-9"]
-    if q.empty:
-        return Row("", "not run", "quadrotor-9 not run yet")
-    parts, verdicts = [], []
-    for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
-        col = f"{pre}refined_solve_time_mean"
-        if col not in q or q[col].isna().all():
-            continue
-        to = q[f"{pre}to_alone_solve_time_mean"].mean()
-        t = {m: q[q.method == m][col].mean() for m in ("sdp", "dp") if (q.method == m).any()}
-        parts.append(f"{name}: TO alone {to:.3g} s, from SDP " + (f"{t['sdp']:.3g} s" if "sdp" in t else "n/a")
-                     + (f", from DP {t['dp']:.3g} s" if "dp" in t else ""))
-        if "sdp" in t:
-            verdicts.append(ratio_verdict(to / t["sdp"], 16.3 / 7.8))
-    verdict = ("reproduced" if verdicts and all(v == "reproduced" for v in verdicts) else "not reproduced"
-               if all(v == "not reproduced" for v in verdicts) else "partly")
-    return Row("; ".join(parts), verdict, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline")
-
-
-def sdp_reaches_to(res) -> Row:
-    """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K=5)."""
-    if "fig1" in res:
-        d = res["fig1"]
-        d = d[(d.method == "sdp") & (d.epochs == d.groupby("task").epochs.transform("max"))]
-        parts, ok = [], []
-        for task, g in d.groupby("task"):
-            best = g.groupby("n_traj").policy_cost_mean.mean()
-            to = g.to_alone_cost_mean.mean()
-            n = best[best <= 1.1 * to]
-            ok.append(len(n) > 0)
-            parts.append(f"{task}: TO alone {to:.3g}, SDP within 10% from n_traj "
-                         + (f"{int(n.index.min())}" if len(n) else "never"))
-        return Row("; ".join(parts), "reproduced" if all(ok) and len(ok) >= 3 else "partly" if any(ok) else "not reproduced")
-    d = res["ablation_k"]
-    g = d[(d.k_rollout == 5) & (d.epochs == d.epochs.max())]
-    to = g.to_alone_cost_mean.mean()
-    m = g.policy_cost_mean.mean()
-    return Row(f"pendulum only (the K ablation's K=5 runs = fig1's pendulum SDP at n_traj 10): SDP "
-               f"{fmt(_per_seed(g, 'policy_cost_mean'))} vs TO alone {to:.3g}",
-               "partly" if m <= 1.1 * to else "not reproduced", "fig1 not run: one task of three, one n_traj")
-
-
-#: claim id -> (experiments it needs, function)
-CLAIMS = {1: (("fig1|ablation_k",), sdp_reaches_to), 5: (("fig2",), fig2_only_sdp), 6: (("fig2",), fig2_to_alone),
-          7: (("fig2",), table2c), 11: (("bench/train_step",), epoch_cost), 12: (("ablation_k",), k_steps),
-          9: (("fig4",), quadrotor_precision), 10: (("fig4",), quadrotor9_times),
-          13: (("fig2|fig3|fig4",), speedup)}
 
 
 def _available(needs, res) -> bool:
@@ -306,12 +51,12 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict]) -> list[dict]:
         if not _available(needs, res):
             row = Row("", "not run", c.get("not_run", ""))
         elif fn is None:
-            raise SdpError(f"claim {cid} has runs ({c.get('experiment')}) but no rule in sdp_cli/report/ledger.py "
+            raise SdpError(f"claim {cid} has runs ({c.get('experiment')}) but no rule in sdp_cli/report/claims.py "
                            "to compute our number: add one to CLAIMS")
         else:
             try:
                 row = fn(res)
-            except KeyError as e:
+            except (KeyError, AttributeError) as e:    # a column missing from an older report
                 raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
         rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail})
     return rows
