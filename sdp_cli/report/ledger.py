@@ -98,6 +98,8 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
         text = " ".join(x.rstrip(".") + "." for x in (r["detail"], str(r.get("notes", "")).strip()) if x)
         if text:
             lines.append(f"- **{r['id']}.** {text}")
-    exps = sorted(k for k in res if not k.startswith("bench/"))
-    lines += ["", "Reports read: " + ", ".join(f"[{e}]({e}/README.md)" for e in exps) + "."]
+    used = {alt for needs, _ in CLAIMS.values() for need in needs for alt in need.split("|")}
+    exps = sorted(k for k in res if k in used and not k.startswith("bench/"))
+    lines += ["", "Reports read: " + (", ".join(f"[{e}]({e}/README.md)" for e in exps) or "none") + "; "
+              + (", ".join(f"`{k}.csv`" for k in sorted(res) if k.startswith("bench/")) or "no bench results") + "."]
     return atomic_write_bytes(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
