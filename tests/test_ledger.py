@@ -207,3 +207,33 @@ def test_fig3_claim_per_horizon_and_action_length():
     d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
     r = ur5_long_actions({"fig3": d})
     assert r.verdict == "partly" and "ur5-rinit-sdp-h64-ta63" in r.detail
+
+
+def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
+    """`sdp report --runs ... --ledger ...`: the ledger's numbers come from the run folders through the
+    report's all_runs.csv (here the K ablation, claim 12, from synthetic evaluations)."""
+    from sdp_cli.evaluate import write_evaluation
+
+    monkeypatch.chdir(tmp_path)
+    for k, cost in ((2, 30.0), (5, 15.5), (10, 15.0)):
+        for seed in (0, 1):
+            run = f"pendulum-sdp-n10-s{seed}-k{k}"
+            d = tmp_path / "runs" / "ablation_k" / run / "it0" / "eval"
+            d.mkdir(parents=True)
+            row = {"task": "pendulum", "method": "sdp", "n_traj": 10, "t_a": 31, "k_rollout": k, "train_seed": seed,
+                   "epochs": 2000, "test_seed": 0, "n": 50, "policy_cost_mean": cost + seed, "policy_cost_median": cost,
+                   "success_rate": 0.8,
+                   "diverged": 0, "to_alone_cost_mean": 14.0, "rollout_time": 1.0, "run": run, "iteration": 0}
+            write_evaluation([row], d / "eval.csv", [{"rollouts": None, "refined": None, "policy": None, "data": None}])
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "claims.yaml").write_text(yaml.safe_dump({"claims": [
+        {"id": 12, "claim": "K = 5 diffusion steps suffice", "paper": "K = 5", "experiment": "ablation_k"},
+        {"id": 8, "claim": "UR5", "paper": "p", "experiment": "fig3", "not_run": "fig3: 92 h on 2 workers"}]}))
+    r = runner.invoke(app, ["report", "--runs", "runs/ablation_k", "--out", "results/ablation_k",
+                            "--experiment", "ablation_k", "--ledger", "results/PAPER.md"])
+    assert r.exit_code == 0, r.output
+    text = (tmp_path / "results" / "PAPER.md").read_text()
+    assert "K=5: 16 ± 0.98 (2 seeds)" in text and "K=10: 15.5 ± 0.98 (2 seeds)" in text
+    assert "| 12 | K = 5 diffusion steps suffice |" in text and "**reproduced** |" in text   # 16 <= 1.1 x 15.5
+    assert "**not run** |" in text and "fig3: 92 h on 2 workers" in text
+    assert "[ablation_k](ablation_k/README.md)" in text
