@@ -32,6 +32,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.trajopt import gains as _gains
 from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
 from sdp_cli.trajopt.ocp import Layout, build_nlp, nlp_functions, stage_blocks
+from sdp_cli.trajopt.timeout import ForkServer, SolveTimeout, solve_timeout
 
 SOLVERS = ("fatrop", "ipopt")
 DEFAULT_SOLVER = "fatrop"
@@ -137,6 +138,7 @@ class TrajOptSolver:
             self._nlpsol = ca.nlpsol(tag, solver, nlp, {**opts, "expand": True})
             self._gfun = gfun
         self.jitted = lib is not None
+        self._server = ForkServer(self._run_nlp)   # fatrop's calls, under a wall-clock limit
         self._oracle = ca.external("nlp", lib) if lib is not None else \
             ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]]).expand()
         lay = self.layout
@@ -194,14 +196,16 @@ class TrajOptSolver:
             # nor from a finite but absurd one (states of 1e7 and more: seen looping for > 25 min)
             return self._failed(x0, xi, X_init, U_init, f"not converged: the initial guess has entries above "
                                 f"{GUESS_MAX:.0e} (solver not started)", time.perf_counter() - t0)
-        try:
-            r = self._nlpsol(x0=w0, p=p, lbx=self._lbx, ubx=self._ubx,
-                             lbg=self._lbg, ubg=self._ubg)
-            stats = self._nlpsol.stats()
+        guard = time.perf_counter() - t0    # the guess checks above count in the solve time, as before
+
+        try:   # fatrop has no time limit of its own: run in a forked solver process (trajopt/timeout.py)
+            r, stats, elapsed = self._server.call((w0, p), solve_timeout() if self.solver_name == "fatrop" else 0.0)
+        except SolveTimeout as e:
+            return self._failed(x0, xi, X_init, U_init, f"not converged: {e}", time.perf_counter() - t0)
         except RuntimeError as e:  # evaluation errors: report, never raise
             solve_time = time.perf_counter() - t0
             return self._failed(x0, xi, X_init, U_init, f"solver error: {str(e).splitlines()[-1]}", solve_time)
-        solve_time = time.perf_counter() - t0
+        solve_time = guard + elapsed
         w = np.asarray(r["x"]).ravel()
         g = np.asarray(r["g"]).ravel()
         X, U = self.layout.unpack(w)
@@ -219,7 +223,7 @@ class TrajOptSolver:
                      f"({stats.get('unified_return_status', '')}) after {stats.get('iter_count', 0)} iterations"
         else:
             status = f"not converged: constraint violation {viol:.2e} > {self.viol_tol:.0e}"
-        res = SolveResult(X=X, U=U, cost=float(r["f"]), iterations=int(stats.get("iter_count", 0)),
+        res = SolveResult(X=X, U=U, cost=float(np.asarray(r["f"]).ravel()[0]), iterations=int(stats.get("iter_count", 0)),
                           converged=converged, solve_time=solve_time, max_violation=viol, status=status,
                           **self._nan_gains(), solver=self.solver_name, x0=x0, xi=xi)
         lam_g, lam_x = np.asarray(r["lam_g"]).ravel(), np.asarray(r["lam_x"]).ravel()
@@ -240,6 +244,16 @@ class TrajOptSolver:
             self._add_gains(res, lam_g)
         res.gain_time += polish_time
         return res
+
+    def _run_nlp(self, w0, p):
+        """One solver call (in the solver process): outputs, the stats we read, and its wall time
+        (measured where the solver runs: no pipe overhead)."""
+        t1 = time.perf_counter()
+        out = self._nlpsol(x0=w0, p=p, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
+        st = self._nlpsol.stats()
+        keep = {k: st.get(k) for k in ("success", "return_status", "unified_return_status", "iter_count")}
+        keep["fatrop"] = {"return_flag": (st.get("fatrop") or {}).get("return_flag", -1)}
+        return {k: np.asarray(v) for k, v in out.items()}, keep, time.perf_counter() - t1
 
     # ------------------------------------------------------------------ polish
     def _is_ambiguous(self, U, lam_x, g, lam_g) -> bool:

@@ -1,0 +1,84 @@
+"""The wall-clock limit on solver calls (sdp_cli/trajopt/timeout.py): a solve past the limit is
+stopped and reported as not converged, the next solve works, and guarded solves equal unguarded ones."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+
+import numpy as np
+import pytest
+
+from sdp_cli.trajopt.timeout import ForkServer, SolveTimeout, solve_timeout
+
+
+def _slow(seconds: float, value: int) -> int:
+    time.sleep(seconds)
+    return value
+
+
+def _raise(msg: str):
+    raise RuntimeError(msg)
+
+
+def test_server_stops_a_call_past_the_limit_and_serves_the_next():
+    server = ForkServer(_slow)
+    assert server.call((0.0, 1), timeout=5) == 1
+    first = server._pid
+    t0 = time.monotonic()
+    with pytest.raises(SolveTimeout, match="0.3 s limit"):
+        server.call((30.0, 2), timeout=0.3)
+    assert time.monotonic() - t0 < 5
+    with pytest.raises(ChildProcessError):          # the killed child was reaped: no zombie left
+        os.waitpid(first, os.WNOHANG)
+    assert server.call((0.0, 3), timeout=5) == 3 and server._pid != first
+    assert server.call((0.0, 4), timeout=0) == 4    # 0: in this process
+    server.stop()
+
+
+def test_server_reports_errors_and_is_not_shared_with_forked_processes():
+    server = ForkServer(_raise)
+    with pytest.raises(RuntimeError, match="RuntimeError: boom"):
+        server.call(("boom",), timeout=5)
+    ok = ForkServer(_slow)
+    assert ok.call((0.0, 5), timeout=5) == 5
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:                        # a pool worker forked after the server started
+        assert pool.apply(ok.call, ((0.0, 6), 5)) == 6
+    assert ok.call((0.0, 7), timeout=5) == 7         # the parent's child still serves the parent
+    ok.stop()
+    server.stop()
+
+
+def test_timeout_setting(monkeypatch):
+    monkeypatch.delenv("SDP_SOLVE_TIMEOUT", raising=False)
+    assert solve_timeout() == 300.0
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "12.5")
+    assert solve_timeout() == 12.5
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0")
+    assert solve_timeout() == 0.0
+
+
+def test_a_solve_past_the_limit_is_not_converged_and_guarded_solves_equal_unguarded(monkeypatch):
+    from sdp_cli.solve_jobs import sample_xi
+    from sdp_cli.tasks import get_task
+    from sdp_cli.trajopt import get_solver
+
+    task = get_task("pendulum")
+    solver = get_solver(task)
+    xi = sample_xi(task, 0, 3)
+    guess = task.naive_guess(xi)
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0")
+    plain = solver.solve(xi, *guess)
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "60")
+    guarded = solver.solve(xi, *guess)
+    assert plain.converged and guarded.converged and guarded.iterations == plain.iterations
+    np.testing.assert_array_equal(guarded.X, plain.X)
+    np.testing.assert_array_equal(guarded.K, plain.K)
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0.0001")
+    stopped = solver.solve(xi, *guess)
+    assert not stopped.converged and "SDP_SOLVE_TIMEOUT" in stopped.status and np.isnan(stopped.cost)
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "60")
+    again = solver.solve(xi, *guess)
+    assert again.converged and again.cost == plain.cost
