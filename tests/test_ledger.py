@@ -237,3 +237,14 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     assert "| 12 | K = 5 diffusion steps suffice |" in text and "**reproduced** |" in text   # 16 <= 1.1 x 15.5
     assert "**not run** |" in text and "fig3: 92 h on 2 workers" in text
     assert "[ablation_k](ablation_k/README.md)" in text
+    # the report draws the K variants apart (all_runs.csv keeps the plain method)
+    out = tmp_path / "results" / "ablation_k"
+    assert set(pd.read_csv(out / "all_runs.csv").method) == {"sdp"}
+    assert set(pd.read_csv(out / "fig1_pendulum.csv").method) == {"sdp-K2", "sdp-K5", "sdp-K10"}
+    k = pd.read_csv(out / "ablation_k_pendulum.csv")
+    assert list(k[k.quantity == "policy cost"].sort_values("k_rollout")["mean"]) == [30.5, 16.0, 15.5]
+    assert (out / "ablation_k_pendulum.png").stat().st_size > 10_000
+    from sdp_cli.report.figures import COLORS, MARKERS
+
+    assert len({COLORS.get(f"sdp-K{k}") for k in (2, 5, 10)}) == 3 and COLORS.get("sdp-K5") == "tab:red"
+    assert MARKERS.get("dp-K2") == "s" and COLORS.get("unknown") is None

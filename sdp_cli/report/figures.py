@@ -15,8 +15,35 @@ from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
 from sdp_cli.report.runs import mean_ci
 
 DIVERGED = 1e5
-COLORS = {"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}
-MARKERS = {"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}
+class _Shades(dict):
+    """Method -> colour (or marker); a variant ``<method>-K<k>`` (:func:`sdp_cli.report.make.method_variants`)
+    gets its method's: colours darker for K < 5 and lighter for K > 5, so that the K ablation's
+    curves stay apart and each legend entry matches its curve."""
+
+    def get(self, key, default=None):
+        if key in self:
+            return self[key]
+        base, _, k = str(key).partition("-K")
+        if base not in self or not k.isdigit():
+            return default
+        value = self[base]
+        if not self.shade:
+            return value
+        import matplotlib.colors as mc
+
+        rgb, k = mc.to_rgb(value), int(k)
+        if k < 5:
+            return tuple(c * (1 - 0.7 * (5 - k) / 5) for c in rgb)
+        mix = min(0.7, (k - 5) / 10)
+        return tuple(c + (1 - c) * mix for c in rgb)
+
+    def __init__(self, values: dict, shade: bool):
+        super().__init__(values)
+        self.shade = shade
+
+
+COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)
+MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
 CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
 
 

@@ -69,10 +69,15 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     written = [_save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
     from sdp_cli.report.curves import loop_costs, training_curves
 
+    from sdp_cli.report.ablation import ablation_k
+
     for task in sorted(df.task.dropna().unique()):
+        written += ablation_k(df, task, out)
+    fdf = method_variants(df)
+    for task in sorted(fdf.task.dropna().unique()):
         for fn in (fig1, fig2a, fig2b, table2c, trajectories, timing):
-            written += fn(df, task, out)
-        written += loop_costs(df, task, out, _loop_t_a(df[df.task == task]))
+            written += fn(fdf, task, out)
+        written += loop_costs(fdf, task, out, _loop_t_a(fdf[fdf.task == task]))
     written += training_curves(df, out)
     if metrics is not None:
         from sdp_cli.report.curves import metrics_summary, write_metrics
@@ -86,8 +91,21 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     return written
 
 
+def method_variants(df: pd.DataFrame) -> pd.DataFrame:
+    """For the figures: where one task has runs of a method with several diffusion step counts (the
+    K ablation), the method becomes ``<method>-K<k>`` so that the variants are drawn and tabulated
+    apart instead of averaged together (all_runs.csv keeps the plain method)."""
+    if "k_rollout" not in df or df.empty:
+        return df
+    df = df.copy()
+    ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
+    mixed = (ks > 1) & df.k_rollout.notna()
+    df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
+    return df
+
+
 #: the files ``sdp report`` writes into its output folder (hand-written ones such as NOTES.md are kept)
-REPORT_FILE = re.compile(r"^(all_runs\.csv|README\.md|(fig1|fig2a|fig2b|table2c|traj|timing)_.+\.(csv|md|png))$")
+REPORT_FILE = re.compile(r"^(all_runs\.csv|README\.md|(fig1|fig2a|fig2b|table2c|traj|timing|ablation_k)_.+\.(csv|md|png))$")
 
 
 def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
