@@ -246,5 +246,7 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     assert (out / "ablation_k_pendulum.png").stat().st_size > 10_000
     from sdp_cli.report.figures import COLORS, MARKERS
 
-    assert len({COLORS.get(f"sdp-K{k}") for k in (2, 5, 10)}) == 3 and COLORS.get("sdp-K5") == "tab:red"
+    from matplotlib.colors import to_rgb
+
+    assert len({COLORS.get(f"sdp-K{k}") for k in (2, 5, 10)}) == 3 and to_rgb(COLORS.get("sdp-K5")) == to_rgb("tab:red")
     assert MARKERS.get("dp-K2") == "s" and COLORS.get("unknown") is None
