@@ -75,7 +75,7 @@ def fig2_only_sdp(res) -> Row:
     for m in ("sdp", "dp", "pddp", "pddp_s"):
         g = last[last.method == m]
         if g.empty:
-            parts.append(f"{m.upper()}: not run")
+            parts.append(f"{m.upper()}: " + ("not finished" if (d.method == m).any() else "not run"))
             continue
         sr = _per_seed(g, "success_rate")
         solved[m] = sr.mean() >= SOLVED
@@ -98,7 +98,8 @@ def fig2_only_sdp(res) -> Row:
     else:
         verdict = "reproduced" if (len(others) == 3 and near_ok) else "partly"
     missing = [m for m in ("dp", "pddp", "pddp_s") if m not in solved]
-    detail = "; ".join(x for x in (f"methods not run yet: {', '.join(missing)}" if missing else "", _unfinished(d)) if x)
+    detail = "; ".join(x for x in (f"methods without a finished run yet: {', '.join(missing)}" if missing else "",
+                                   _unfinished(d)) if x)
     return Row("; ".join(parts) + near, verdict, detail)
 
 
