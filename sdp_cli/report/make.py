@@ -125,6 +125,7 @@ def _top_index(results: Path) -> Path:
     """``results/README.md``: each experiment folder's index, with the commit of the code that produced it."""
     lines = ["# Results", "", "One folder per experiment, written by `sdp report` from real runs. Each folder's",
              "README.md names the runs, the commit, and the seeds and budgets of every file in it.", "",
+             "The paper's claims beside our numbers: [PAPER.md](PAPER.md) (`sdp report --ledger results/PAPER.md`).", "",
              "| experiment | code commit | files |", "|---|---|---|"]
     for sub in sorted(p for p in results.iterdir() if (p / "README.md").is_file()):
         text = (sub / "README.md").read_text()
