@@ -303,7 +303,8 @@ def pipeline_cmd(
     params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
     estimate: Annotated[bool, typer.Option("--estimate", help="Print each run's training steps, samples and estimated hours (training calibrated here in <= 60 s), and the totals; writes nothing.")] = False,
     run: Annotated[bool, typer.Option("--run", help="Run every run of the experiment now (each an `sdp loop` in OUT/<run>/), in parallel on the executor; resumable. This is what the DVC stage `group` runs.")] = False,
-    out: Annotated[Optional[Path], typer.Option(help="--run: folder of the runs (default runs/<experiment>).")] = None,
+    status: Annotated[bool, typer.Option("--status", help="Print where each run stands in OUT (iterations evaluated, done / in progress / not started); reads only.")] = False,
+    out: Annotated[Optional[Path], typer.Option(help="--run, --status: folder of the runs (default runs/<experiment>).")] = None,
     only: Annotated[Optional[str], typer.Option(help="--run: comma-separated run names to run (default all).")] = None,
     restart_changed: Annotated[bool, typer.Option("--restart-changed", help="--run: start over a run whose folder holds other settings (the experiment file changed) instead of refusing; what the DVC stage does.")] = False,
     workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
@@ -313,8 +314,17 @@ def pipeline_cmd(
     """Select the experiment that `dvc repro` runs (pipelines/<name>.yaml, written into params.yaml), or run it (--run)."""
     from sdp_cli.pipeline import select_experiment
 
-    if estimate and run:
-        raise SdpError("--estimate and --run exclude each other")
+    if estimate + run + status > 1:
+        raise SdpError("--estimate, --run and --status exclude each other")
+    if status:
+        from sdp_cli.runner import run_status
+
+        table = run_status(experiment, out or Path("runs") / experiment)
+        typer.echo(table.to_string(index=False))
+        counts = table.state.value_counts()
+        typer.echo(", ".join(f"{counts[k]} {k}" for k in ("done", "in progress", "not started", "other settings")
+                             if k in counts))
+        return
     if estimate:
         from sdp_cli.estimate import estimate as run_estimate, format_estimate
 

@@ -116,3 +116,28 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
         raise SdpError(f"{len(failed)} of {len(keys)} runs failed: {'; '.join(failed)}; the others are kept, "
                        "re-run to retry the failed ones")
     return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+
+
+def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.DataFrame:
+    """Where each run of experiment ``name`` under ``out`` stands, from its folder (reads only):
+    ``run``, ``iterations`` (evaluated iterations / n_algo), ``state`` (done: its summary is written;
+    in progress: a folder with work in it; not started; other settings: the folder holds a run made
+    with other settings, which ``--run`` refuses and ``--restart-changed`` starts over)."""
+    from sdp_cli.evaluate import MANIFEST_SUFFIX
+    from sdp_cli.experiment import load_experiment
+    from sdp_cli.loop import check_resume
+    from sdp_cli.pipeline import loop_configs
+
+    rows = []
+    for key, cfg in loop_configs(name, load_experiment(name, root)).items():
+        d = Path(out) / key
+        done = sum(1 for k in range(cfg.n_algo) if (d / f"it{k}" / "eval" / ("eval" + MANIFEST_SUFFIX)).is_file())
+        try:
+            check_resume(cfg, d)
+            same = True
+        except SdpError:
+            same = False
+        state = ("other settings" if not same else "done" if (d / "summary.csv").is_file() and done == cfg.n_algo
+                 else "in progress" if d.is_dir() and any(d.iterdir()) else "not started")
+        rows.append({"run": key, "iterations": f"{done}/{cfg.n_algo}", "state": state})
+    return pd.DataFrame(rows)

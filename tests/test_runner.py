@@ -150,3 +150,26 @@ def test_dvc_mode_restarts_runs_of_other_code_or_settings(root, sequential, tmp_
                    log=logs.append)
     assert any("starting it over" in s for s in logs) and ck.stat().st_mtime_ns != before
     pd.testing.assert_frame_equal(_table(df), _table(sequential[1][sequential[1].run == RUNS[0]]))
+
+
+def test_status_reports_each_run_from_its_folder(root, sequential, tmp_path, monkeypatch):
+    """`sdp pipeline NAME --status`: done runs, a run interrupted after its first evaluation, one not
+    started, and a folder of other settings, read from the folders only."""
+    import json
+    import shutil
+
+    from sdp_cli.runner import run_status
+
+    out = tmp_path / "runs"
+    shutil.copytree(sequential[0] / RUNS[0], out / RUNS[0])
+    st = run_status("tiny", out, root=root).set_index("run")
+    assert st.loc[RUNS[0]].tolist() == ["1/1", "done"] and st.loc[RUNS[1]].tolist() == ["0/1", "not started"]
+    (out / RUNS[0] / "summary.csv").unlink()                        # interrupted before the summary
+    assert run_status("tiny", out, root=root).set_index("run").loc[RUNS[0], "state"] == "in progress"
+    cfg = json.loads((out / RUNS[0] / "loop_config.json").read_text())
+    (out / RUNS[0] / "loop_config.json").write_text(json.dumps({**cfg, "epochs": 99}))
+    assert run_status("tiny", out, root=root).set_index("run").loc[RUNS[0], "state"] == "other settings"
+    monkeypatch.chdir(root)
+    r = CliRunner().invoke(app, ["pipeline", "tiny", "--status", "--out", str(out)])
+    assert r.exit_code == 0 and "1 not started, 1 other settings" in r.output
+    assert sorted(p.name for p in out.iterdir()) == [RUNS[0]]          # reads only
