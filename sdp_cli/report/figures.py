@@ -205,7 +205,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
     first = ax.legend(handles=c_handles, fontsize=7, loc="upper right")
     ax.add_artist(first)
-    ax.legend(handles=m_handles, fontsize=7, loc="lower left")
+    ax.legend(handles=m_handles, fontsize=7, loc="center right")   # the costs sit low on the axis
     ax2.set_ylim(-0.03, 1.03)
     ax2.set_ylabel("share of policy rollouts reaching the goal")
     ax2.set_title("policy success rate", fontsize=10)
