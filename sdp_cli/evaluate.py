@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import (json_default, atomic_write_bytes, file_sha256, load_npz, load_timing, save_timing,
-                                    timing_path)
+from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
+                                    save_timing, timing_path)
 from sdp_cli.errors import SdpError
 
 
@@ -152,14 +152,14 @@ def evaluation_artifacts(rollouts: str | os.PathLike, refined: str | os.PathLike
     rollouts, their refinement, the policy checkpoint that made them and its training dataset;
     ``git_rev``: the code revision recorded in the rollouts (and the refinement's when it differs,
     ``rollouts_rev+refined_rev``), i.e. the code that computed the row, not the one that wrote it."""
-    _, meta = load_npz(rollouts, kind="rollout")
+    meta = load_meta(rollouts, kind="rollout")
 
     def existing(p):
         return str(Path(p).resolve()) if p and Path(p).exists() else None
 
     revs = [(meta.get("provenance") or {}).get("git_rev") or "unknown"]
     if refined is not None and Path(refined).exists():
-        _, rmeta = load_npz(refined, kind="dataset")
+        rmeta = load_meta(refined, kind="dataset")
         rrev = (rmeta.get("provenance") or {}).get("git_rev") or "unknown"
         revs += [rrev] if rrev != revs[0] else []
     return {"rollouts": existing(rollouts), "refined": existing(refined),

@@ -271,8 +271,28 @@ def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str
                        f"({type(e).__name__})") from None
     if "__meta__" not in arrays:
         raise SdpError(f"corrupt artifact {path}: no __meta__ record (not written by sdp?)")
+    return arrays, _check_meta(path, arrays.pop("__meta__"), kind)
+
+
+def load_meta(path: str | os.PathLike, kind: str | None = None) -> dict[str, Any]:
+    """An artifact's metadata record only (the arrays are not read); errors as :func:`load_npz`."""
+    path = Path(path)
+    if not path.is_file():
+        raise SdpError(f"artifact not found: {path}")
     try:
-        meta = json.loads(str(arrays.pop("__meta__")))
+        with np.load(path, allow_pickle=False) as z:
+            if "__meta__" not in z.files:
+                raise SdpError(f"corrupt artifact {path}: no __meta__ record (not written by sdp?)")
+            raw = z["__meta__"]
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise SdpError(f"corrupt artifact {path}: expected an sdp .npz archive of numeric arrays "
+                       f"({type(e).__name__})") from None
+    return _check_meta(path, raw, kind)
+
+
+def _check_meta(path: Path, raw, kind: str | None) -> dict[str, Any]:
+    try:
+        meta = json.loads(str(raw))
     except json.JSONDecodeError as e:
         raise SdpError(f"corrupt artifact {path}: bad metadata ({e})") from None
     if not isinstance(meta, dict):
@@ -282,4 +302,4 @@ def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str
     if meta.get("format_version", 0) > FORMAT_VERSION:
         raise SdpError(f"{path} has format_version {meta['format_version']}, newer than this sdp "
                        f"({FORMAT_VERSION}); upgrade sdp")
-    return arrays, meta
+    return meta

@@ -48,6 +48,13 @@ def ratio_verdict(r: float, paper: float) -> str:
     return "partly" if r - 1 >= (paper - 1) / 10 else "not reproduced"
 
 
+def combine(verdicts: list[str]) -> str:
+    """One verdict from several parts: reproduced if all are, not reproduced if all are not, else partly."""
+    if verdicts and all(v == "reproduced" for v in verdicts):
+        return "reproduced"
+    return "not reproduced" if all(v == "not reproduced" for v in verdicts) else "partly"
+
+
 def _last(d: pd.DataFrame) -> pd.DataFrame:
     """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
     and seed); a task's final iteration is the last one any of its runs reached."""
@@ -143,8 +150,7 @@ def table2c(res) -> Row:
             f"{roll[t9]:.3g} s, solve {solve[t9]:.3g} s / {ss_solve[t9]:.3g} s; policy cost at T_a >= 12: "
             + ", ".join(f"{c:.3g}" for c in hi) + f" vs best {lo:.3g} at T_a <= 9 ({degr:.2f}x)")
     v = [ratio_verdict(r_ss, 4.1 / 0.22), ratio_verdict(degr, 137 / 33.5)]
-    verdict = "reproduced" if all(x == "reproduced" for x in v) else "not reproduced" if all(
-        x == "not reproduced" for x in v) else "partly"
+    verdict = combine(v)
     return Row(ours, verdict, f"speed-up verdict (single shooting, the paper's solver family): {v[0]}; "
                               f"degradation verdict: {v[1]}; times are per instance on our CPU")
 
@@ -165,8 +171,7 @@ def speedup(res) -> Row:
                 verdicts.append("reproduced" if r.mean() >= 2 else "partly" if r.mean() > 1 else "not reproduced")
     if not parts:
         return Row("", "not run")
-    verdict = "reproduced" if all(v == "reproduced" for v in verdicts) else "not reproduced" if all(
-        v == "not reproduced" for v in verdicts) else "partly"
+    verdict = combine(verdicts)
     return Row("; ".join(parts), verdict, "; ".join(x for x in (_unfinished(res["fig2"]) if "fig2" in res else "",) if x))
 
 
@@ -239,8 +244,7 @@ def quadrotor9_times(res) -> Row:
                      + (f", from DP {t['dp']:.3g} s" if "dp" in t else ""))
         if "sdp" in t:
             verdicts.append(ratio_verdict(to / t["sdp"], 16.3 / 7.8))
-    verdict = ("reproduced" if verdicts and all(v == "reproduced" for v in verdicts) else "not reproduced"
-               if all(v == "not reproduced" for v in verdicts) else "partly")
+    verdict = combine(verdicts)
     return Row("; ".join(parts), verdict, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline")
 
 
@@ -300,8 +304,7 @@ def dp_needs_more(res) -> Row:
         verdicts.append(ratio_verdict(r, 5.0) if not bound or r >= 3 else "partly")
     if not verdicts:
         return Row("", "not run", "fig1 has no task with both SDP and DP")
-    verdict = ("reproduced" if all(v == "reproduced" for v in verdicts) else "not reproduced"
-               if all(v == "not reproduced" for v in verdicts) else "partly")
+    verdict = combine(verdicts)
     return Row("; ".join(parts), verdict, "n_traj: the smallest dataset whose mean cost over seeds is within 10% of "
                                           "TO alone; DP never: the ratio is a lower bound")
 
