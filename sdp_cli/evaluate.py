@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
-                                    save_timing, timing_path)
+                                    resolve_recorded, save_timing, timing_path)
 from sdp_cli.errors import SdpError
 
 
@@ -164,7 +164,8 @@ def evaluation_artifacts(rollouts: str | os.PathLike, refined: str | os.PathLike
         revs += [rrev] if rrev != revs[0] else []
     return {"rollouts": existing(rollouts), "refined": existing(refined),
             "policy": existing((meta.get("config") or {}).get("policy")),
-            "data": existing((meta.get("policy_dataset") or {}).get("path")), "git_rev": "+".join(revs)}
+            "data": existing(resolve_recorded((meta.get("policy_dataset") or {}).get("path"), Path(rollouts).parent)),
+            "git_rev": "+".join(revs)}
 
 
 def manifest_path(csv: str | os.PathLike) -> Path:

@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from sdp_cli.data.artifacts import save_npz
+from sdp_cli.data.artifacts import portable_path, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import Task
 
@@ -142,6 +142,11 @@ def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray)
             "reached": (goal <= task.goal_tolerance) & ~diverged}
 
 
+def _dataset_record(info: dict, out: str | os.PathLike) -> dict:
+    """The policy's training-dataset record with its path relative to the rollouts' folder."""
+    return {**info, "path": portable_path(info["path"], Path(out).parent)} if info.get("path") else dict(info)
+
+
 def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: RolloutConfig,
             task_name: str | None = None, device: str = "cpu",
             on_step: Callable[[int, int], None] | None = None) -> tuple[Path, dict]:
@@ -164,7 +169,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
                     device=str(policy.device), task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
-                    policy_epoch=policy.checkpoint_epoch, policy_dataset=policy.dataset_info,
+                    policy_epoch=policy.checkpoint_epoch, policy_dataset=_dataset_record(policy.dataset_info, out),
                     timing={"rollout_time": wall})
     summary = {"method": policy.method, "n": config.n, "mean_cost": float(np.mean(ev["cost"])),
                "median_cost": float(np.median(ev["cost"])), "diverged": int(ev["diverged"].sum()),

@@ -31,7 +31,7 @@ import torch
 
 from sdp_cli.data.chunks import fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
-from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, save_timing
+from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, portable_path, save_timing
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
                                        save_checkpoint)
@@ -203,9 +203,10 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
             "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
-            "dataset": {"path": str(Path(data).resolve()), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),
+            # paths relative to the checkpoint folder: the same bytes in any clone
+            "dataset": {"path": portable_path(data, out), "sha256": fingerprint, "n_traj": int(len(arrays["X"])),
                         "T": int(task.T)},
-            "init": str(init) if init is not None else (prev or {}).get("init"),
+            "init": portable_path(init, out) if init is not None else (prev or {}).get("init"),
             "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev),
             "sobolev_scale": sob_scale}
 

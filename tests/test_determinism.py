@@ -4,6 +4,8 @@ with the clock readings in the timing sidecars."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 from typer.testing import CliRunner
@@ -63,16 +65,9 @@ def test_collect_twice_gives_the_same_dataset(tmp_path):
         np.testing.assert_array_equal(xa[k], xb[k], err_msg=k)
 
 
-def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
-    """What a forced `dvc repro` does: delete the outputs, run the same commands again. Every output
-    (dataset, checkpoint, metrics.csv, rollouts, refined, eval.csv, metrics JSON) has the same SHA-256;
-    only the timing sidecars (not DVC outputs) differ."""
-    import shutil
-
-    from sdp_cli.data.artifacts import file_sha256, load_timing
-
-    d = tmp_path / "run"
-    cmds = [["collect", "--task", "pendulum", "--n-traj", "2", "--seed", "3", "--workers", "1",
+def _pipeline_commands(d) -> list[list[str]]:
+    """collect -> train -> rollout -> refine -> evaluate into the folder ``d`` (a stage's commands)."""
+    return [["collect", "--task", "pendulum", "--n-traj", "2", "--seed", "3", "--workers", "1",
              "--out", str(d / "data.npz")],
             ["train", "--data", str(d / "data.npz"), "--method", "sdp", "--epochs", "2", "--horizon", "8",
              "--down-dims", "8,16", "--batch-size", "16", "--seed", "1", "--device", "cpu", "--no-progress",
@@ -82,15 +77,32 @@ def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
             ["refine", "--rollouts", str(d / "rollout.npz"), "--workers", "1", "--out", str(d / "refined.npz")],
             ["evaluate", "--rollouts", str(d / "rollout.npz"), "--refined", str(d / "refined.npz"),
              "--out", str(d / "eval.csv"), "--metrics", str(d / "metrics.json")]]
-    outs = ["data.npz", "policy/checkpoint.pt", "policy/metrics.csv", "rollout.npz", "refined.npz", "eval.csv",
-            "metrics.json"]
+
+
+PIPELINE_OUTS = ["data.npz", "policy/checkpoint.pt", "policy/metrics.csv", "rollout.npz", "refined.npz", "eval.csv",
+                 "metrics.json"]
+
+
+def _run_all(cmds):
+    for c in cmds:
+        r = runner.invoke(app, c)
+        assert r.exit_code == 0, (c[0], r.output)
+
+
+def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
+    """What a forced `dvc repro` does: delete the outputs, run the same commands again. Every output
+    (dataset, checkpoint, metrics.csv, rollouts, refined, eval.csv, metrics JSON) has the same SHA-256;
+    only the timing sidecars (not DVC outputs) differ."""
+    import shutil
+
+    from sdp_cli.data.artifacts import file_sha256, load_timing
+
+    d = tmp_path / "run"
     hashes = []
     for _ in range(2):
         shutil.rmtree(d, ignore_errors=True)
-        for c in cmds:
-            r = runner.invoke(app, c)
-            assert r.exit_code == 0, (c[0], r.output)
-        hashes.append({o: file_sha256(d / o) for o in outs})
+        _run_all(_pipeline_commands(d))
+        hashes.append({o: file_sha256(d / o) for o in PIPELINE_OUTS})
     assert hashes[0] == hashes[1]
     assert load_timing(d / "data.npz")["wall_time"] > 0 and load_timing(d / "policy")["wall_time"] > 0
     assert load_timing(d / "rollout.npz")["rollout_time"] > 0
@@ -100,3 +112,26 @@ def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
     row = read_evaluation(d / "eval.csv").iloc[0]
     assert row.rollout_time > 0 and row.to_alone_solve_time_mean > 0
     assert "rollout_time" not in open(d / "eval.csv").readline()
+
+
+def test_the_same_commands_in_another_clone_write_the_same_bytes(tmp_path, monkeypatch):
+    """`dvc repro` in a second clone: the same relative commands run from another root folder give
+    outputs with the same SHA-256 (artifacts record paths relative to themselves, never absolute
+    ones), and the recorded paths still lead to the files they name."""
+    from sdp_cli.data.artifacts import file_sha256
+    from sdp_cli.evaluate import read_manifest
+    from sdp_cli.policy.api import load_policy
+
+    hashes = []
+    for clone in ("clone_a", "elsewhere/clone_b"):
+        root = tmp_path / clone
+        root.mkdir(parents=True)
+        monkeypatch.chdir(root)
+        _run_all(_pipeline_commands(Path("runs")))
+        hashes.append({o: file_sha256(root / "runs" / o) for o in PIPELINE_OUTS})
+    assert hashes[0] == hashes[1]
+    monkeypatch.chdir(tmp_path)   # resolved from any working folder
+    b = tmp_path / "elsewhere/clone_b/runs"
+    assert Path(load_policy(b / "policy").dataset_info["path"]) == (b / "data.npz").resolve()
+    entry = read_manifest(b / "eval.manifest.json")["entries"][0]
+    assert Path(entry["data"]) == (b / "data.npz").resolve() and Path(entry["policy"]) == (b / "policy").resolve()

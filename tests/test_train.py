@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,7 +133,8 @@ def test_init_keeps_weights_and_widens_the_normalizer(data, tmp_path):
         assert torch.all(lo(b, kind) <= lo(a, kind) + 1e-6) and torch.all(hi(b, kind) >= hi(a, kind) - 1e-6)
     assert float(lo(b, "action").min()) <= U.min() + 1e-4 and float(hi(b, "action").max()) >= U.max() - 1e-4
     assert b["config"]["mlp_hidden"] == [32, 32]    # architecture of the init checkpoint wins
-    assert b["init"] == str(first)
+    # recorded relative to the checkpoint folder
+    assert (tmp_path / "second" / b["init"]).resolve() == Path(first).resolve()
 
 
 def test_init_diffusion_policy_can_output_the_new_range(data, tmp_path):

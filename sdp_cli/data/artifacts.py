@@ -150,6 +150,19 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def portable_path(path: str | os.PathLike, base: str | os.PathLike) -> str:
+    """``path`` relative to the folder ``base`` (POSIX separators), for recording inside an artifact
+    that lives in ``base``: moving or cloning the whole tree then leaves the artifact's bytes unchanged
+    (an absolute path would make a ``dvc repro`` in another clone hash differently)."""
+    return Path(os.path.relpath(Path(path).resolve(), Path(base).resolve())).as_posix()
+
+
+def resolve_recorded(path: str | None, base: str | os.PathLike) -> Path | None:
+    """A path recorded by :func:`portable_path` (or an older absolute one), made absolute against
+    ``base``, the folder of the artifact that recorded it; None stays None."""
+    return (Path(base) / path).resolve() if path else None
+
+
 def ensure_dir(path: str | os.PathLike, what: str) -> Path:
     """Create the output folder ``path`` (``what``: e.g. "run folder") or raise one clear ``SdpError``."""
     path = Path(path)

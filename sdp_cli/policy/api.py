@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from sdp_cli.data.artifacts import resolve_recorded
 from sdp_cli.data.chunks import task_with_action
-from sdp_cli.policy.checkpoint import load_checkpoint, net_from_checkpoint
+from sdp_cli.policy.checkpoint import load_checkpoint, net_from_checkpoint, resolve_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.tasks import Task, get_task
 from sdp_cli.tasks.base import check_task_params
@@ -109,4 +110,7 @@ def load_policy(path, device="cpu", use_ema: bool = True) -> DiffusionPolicy | M
     """Load a trained policy from a checkpoint file or a run folder (``checkpoint.pt``)."""
     ck = load_checkpoint(path, map_location=device)
     chunked = TrainConfig.from_dict(ck["config"]).family.chunked   # the method's family, from the registry
-    return (DiffusionPolicy if chunked else MLPPolicy)(ck, device, use_ema)
+    policy = (DiffusionPolicy if chunked else MLPPolicy)(ck, device, use_ema)
+    if policy.dataset_info.get("path"):   # recorded relative to the checkpoint's folder
+        policy.dataset_info["path"] = str(resolve_recorded(policy.dataset_info["path"], resolve_checkpoint(path).parent))
+    return policy
