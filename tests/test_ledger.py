@@ -187,6 +187,10 @@ def test_fig1_claims_on_synthetic_rows():
     assert "DP never (> 16x)" in dp_needs_more({"fig1": d}).ours
     part = dp_needs_more({"fig1": _fig1_rows().query("task == 'pendulum'")})   # one of Fig. 1's three tasks
     assert part.verdict == "partly" and "fig1 not run on ur5-fixed, quadrotor-0" in part.detail
+    d = _fig1_rows()
+    d.loc[d.method == "dp", "policy_cost_mean"] = 10.0                   # DP as good as SDP: 1x everywhere
+    assert dp_needs_more({"fig1": d.query("task == 'pendulum'")}).verdict == "not reproduced"
+    assert mlp_unstable({"fig1": d[d.method != "pddp_s"]}).verdict == "not run"
     r = pendulum_torque({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "success 90%" in r.ours
     r = mlp_unstable({"fig1": _fig1_rows()})
