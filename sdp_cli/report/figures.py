@@ -132,7 +132,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax.set_xlabel("n_traj (trajectories in the dataset)")
     ax.set_ylabel("mean cost on test instances")
     ax.set_title(f"Fig. 1 — sample efficiency, {task}")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))   # beside the axes, never over the data
     return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
 
 
