@@ -309,7 +309,7 @@ def _n_text(g: pd.DataFrame, to: float) -> str:
 
 
 def dp_needs_more(res) -> Row:
-    """Claim 2: per task, n_traj at which DP's mean cost comes within 10% of TO alone over SDP's."""
+    """Claim 2: per task, the n_traj from which DP's mean cost stays within 10% of TO alone over SDP's."""
     d = _fig1_final(res)
     parts, verdicts = [], []
     for task, g in d.groupby("task"):
