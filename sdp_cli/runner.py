@@ -123,7 +123,7 @@ def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.
     ``run``, ``iterations`` (evaluated iterations / n_algo), ``state`` (done: its summary is written;
     in progress: a folder with work in it; not started; other settings: the folder holds a run made
     with other settings, which ``--run`` refuses and ``--restart-changed`` starts over)."""
-    from sdp_cli.evaluate import MANIFEST_SUFFIX
+    from sdp_cli.evaluate import manifest_path
     from sdp_cli.experiment import load_experiment
     from sdp_cli.loop import check_resume
     from sdp_cli.pipeline import loop_configs
@@ -131,7 +131,7 @@ def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.
     rows = []
     for key, cfg in loop_configs(name, load_experiment(name, root)).items():
         d = Path(out) / key
-        done = sum(1 for k in range(cfg.n_algo) if (d / f"it{k}" / "eval" / ("eval" + MANIFEST_SUFFIX)).is_file())
+        done = sum(1 for k in range(cfg.n_algo) if manifest_path(d / f"it{k}" / "eval" / "eval.csv").is_file())
         try:
             check_resume(cfg, d)
             same = True

@@ -108,9 +108,10 @@ class MLPPolicy(Policy):
 
 def load_policy(path, device="cpu", use_ema: bool = True) -> DiffusionPolicy | MLPPolicy:
     """Load a trained policy from a checkpoint file or a run folder (``checkpoint.pt``)."""
+    path = resolve_checkpoint(path)
     ck = load_checkpoint(path, map_location=device)
     chunked = TrainConfig.from_dict(ck["config"]).family.chunked   # the method's family, from the registry
     policy = (DiffusionPolicy if chunked else MLPPolicy)(ck, device, use_ema)
     if policy.dataset_info.get("path"):   # recorded relative to the checkpoint's folder
-        policy.dataset_info["path"] = str(resolve_recorded(policy.dataset_info["path"], resolve_checkpoint(path).parent))
+        policy.dataset_info["path"] = str(resolve_recorded(policy.dataset_info["path"], path.parent))
     return policy
