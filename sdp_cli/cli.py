@@ -136,7 +136,8 @@ def refine_cmd(
     with count_progress("refine (instances)", None, progress) as on_done:
         path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, single_shooting=single_shooting,
                          workers=workers, executor=executor, scheduler=scheduler, progress=on_done)
-    typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins}; "
+    typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins} "
+               f"(tied {s.policy_ties}); "
                f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
                f"mean solve {s.mean_pol_time:.3f} s vs {s.mean_base_time:.3f} s")
 

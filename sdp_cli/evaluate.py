@@ -105,6 +105,9 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         dt, m = load_timing(refined), len(cost)
         pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)
         tried = d["inst_pol_iterations"] >= 0
+        from sdp_cli.solve_jobs import policy_outcomes   # (imports the tasks: only where a refine is read)
+
+        wins, ties = policy_outcomes(d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], base_ok)
         best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
                         np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))
         row.update({
@@ -118,7 +121,9 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             # ArgminCost(refined, TO alone): <= TO alone by construction, not evidence of anything alone
             "argmin_cost_mean": _mean(best),
             "argmin_converged_rate": float(np.mean(d["inst_winner"] >= 0)),
-            "policy_wins": int(np.sum(d["inst_winner"] == 0)),
+            # strict wins; ties (both guesses reach one optimum) are kept from the policy but are no win
+            "policy_wins": wins,
+            "policy_ties": ties,
             "to_alone_cost_mean": _mean(np.where(base_ok, d["inst_base_cost"], np.nan)),
             "to_alone_converged_rate": float(np.mean(base_ok)) if np.any(d["inst_base_iterations"] >= 0) else float("nan"),
             "to_alone_iterations_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_iterations"], np.nan)),

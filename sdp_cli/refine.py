@@ -18,8 +18,8 @@ import numpy as np
 
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
 from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, TIE_RTOL, WIN_BASELINE, WIN_NONE,  # noqa: F401 (re-exported)
-                                 WIN_POLICY, argmin_cost, failed_record, instance_arrays, refine_instance,
-                                 usable_guess, warm_solver)
+                                 WIN_POLICY, argmin_cost, failed_record, instance_arrays, policy_outcomes,
+                                 refine_instance, usable_guess, warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params
@@ -29,6 +29,7 @@ class RefineStats:
     n: int = 0
     kept: int = 0
     policy_wins: int = 0
+    policy_ties: int = 0
     mean_pol_iterations: float = float("nan")
     mean_base_iterations: float = float("nan")
     mean_pol_time: float = float("nan")
@@ -86,9 +87,10 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     out_arrays["xi"] = arrays["xi"][kept]
     out_arrays["index"] = np.asarray(kept, dtype=int)
     out_arrays["converged"] = np.ones(len(kept), dtype=bool)
-    w = out_arrays["inst_winner"]
+    wins, ties = policy_outcomes(out_arrays["inst_winner"], out_arrays["inst_pol_cost"], out_arrays["inst_base_cost"],
+                                 out_arrays["inst_base_converged"])
     stats = RefineStats(
-        n=n, kept=len(kept), policy_wins=int(np.sum(w == WIN_POLICY)),
+        n=n, kept=len(kept), policy_wins=wins, policy_ties=ties,
         mean_pol_iterations=float(np.mean(out_arrays["inst_pol_iterations"])),
         mean_base_iterations=float(np.mean(out_arrays["inst_base_iterations"])) if baseline else float("nan"),
         mean_pol_time=float(np.mean(out_arrays["inst_pol_time"])),

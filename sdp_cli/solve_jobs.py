@@ -89,6 +89,19 @@ def argmin_cost(candidates: Sequence) -> int | None:
     return best
 
 
+def policy_outcomes(winner, pol_cost, base_cost, base_converged) -> tuple[int, int]:
+    """``(wins, ties)`` of the policy guess over per-instance arrays ``(N,)``: a win is an instance
+    ArgminCost kept from the policy guess where TO alone failed (or was not run) or ended more than
+    ``TIE_RTOL`` dearer; a tie, one where both reached the same cost (ArgminCost keeps the policy's,
+    which says nothing about the policy)."""
+    winner, pol_cost, base_cost = (np.asarray(a) for a in (winner, pol_cost, base_cost))
+    kept = winner == WIN_POLICY
+    base_ok = np.asarray(base_converged).astype(bool) & np.isfinite(base_cost)
+    with np.errstate(invalid="ignore"):
+        tie = base_ok & (np.abs(base_cost - pol_cost) <= TIE_RTOL * np.maximum(1.0, np.abs(base_cost)))
+    return int(np.sum(kept & ~tie)), int(np.sum(kept & tie))
+
+
 def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
     """A policy rollout worth warm-starting from: finite, not diverged (states within
     ``DIVERGENCE_STATE``, cost <= ``DIVERGENCE_COST``)."""

@@ -95,3 +95,21 @@ def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
     manifest_path(d / "eval.csv").write_text(json.dumps(man))
     with pytest.raises(SdpError, match="describes 2 rows but .* has 1"):
         load_runs(tmp_path / "runs")
+
+
+def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_path):
+    """Old eval.csv rows counted a shared optimum as a policy win; the report recounts them."""
+    import numpy as np
+    import pandas as pd
+
+    from sdp_cli.report.runs import _recount_policy_wins
+
+    refined = tmp_path / "refined.npz"
+    np.savez(refined, inst_winner=np.array([0, 0, 1]), inst_pol_cost=np.array([2.5, 1.0, 3.0]),
+             inst_base_cost=np.array([2.5, 2.0, 2.0]), inst_base_converged=np.array([True, True, True]))
+    old = pd.DataFrame({"policy_wins": [2, 5], "refined": [str(refined), None]})
+    got = _recount_policy_wins(old)
+    assert got.loc[0, "policy_wins"] == 1 and got.loc[0, "policy_ties"] == 1
+    assert np.isnan(got.loc[1, "policy_wins"]) and np.isnan(got.loc[1, "policy_ties"])   # no refine: unknown
+    new = pd.DataFrame({"policy_wins": [4], "policy_ties": [1], "refined": [str(refined)]})
+    pd.testing.assert_frame_equal(_recount_policy_wins(new), new)                          # new rows kept as is

@@ -16,7 +16,7 @@ from sdp_cli.data.collect import CollectConfig, collect
 from sdp_cli.errors import SdpError
 from sdp_cli.policy import load_policy
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.refine import WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, refine_instance
+from sdp_cli.refine import WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes, refine_instance
 from sdp_cli.rollout import RolloutConfig, instance_generators, rollout_policy, evaluation_xis
 from sdp_cli.train import train
 
@@ -92,6 +92,25 @@ def test_argmin_cost_keeps_the_cheapest_converged_candidate():
     assert argmin_cost([_cand(31.25, True), _cand(31.2, True)]) == 1
 
 
+def test_policy_outcomes_count_a_shared_optimum_as_a_tie_not_a_win():
+    nan = float("nan")
+    winner = np.array([WIN_POLICY, WIN_POLICY, WIN_POLICY, WIN_POLICY, WIN_BASELINE, WIN_NONE])
+    pol = np.array([31.25, 30.0, 12.0, 12.0, 40.0, nan])
+    base = np.array([31.25 + 1e-13, 31.0, nan, 15.0, 35.0, nan])
+    base_ok = np.array([True, True, False, False, True, False])
+    # a shared optimum (rounding apart) is a tie; cheaper, or TO alone failed: a win; the rest neither
+    assert policy_outcomes(winner, pol, base, base_ok) == (3, 1)
+    # every instance a shared optimum, as on quadrotor-0 from DP (49 of 50): no win at all
+    same = np.full(5, 2.5)
+    assert policy_outcomes(np.full(5, WIN_POLICY), same, same * (1 + 1e-12), np.ones(5, bool)) == (0, 5)
+    # the kept winner and the count agree: ArgminCost keeps the policy's solve exactly on wins and ties
+    for i in range(len(pol)):
+        cands = [SimpleNamespace(cost=pol[i], converged=winner[i] == WIN_POLICY or np.isfinite(pol[i])),
+                 SimpleNamespace(cost=base[i], converged=bool(base_ok[i]))]
+        kept = argmin_cost(cands)
+        assert (kept == 0) == (winner[i] == WIN_POLICY)
+
+
 def test_refine_instance_never_keeps_a_non_converged_solve(trained):
     from sdp_cli.tasks import get_task
 
@@ -136,6 +155,7 @@ def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
     assert row["refined_converged_rate"] == pytest.approx(float(np.mean(pol_ok)))
     best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"], d["inst_base_cost"])[d["inst_winner"] >= 0]
     assert row["argmin_cost_mean"] == pytest.approx(float(np.mean(best)))
+    assert row["policy_wins"] + row["policy_ties"] == int(np.sum(d["inst_winner"] == 0))
     r = runner.invoke(app, ["rollout", "--policy", str(trained[method]), "--task", "double_pendulum",
                             "--out", str(tmp_path / "z.npz")])
     assert r.exit_code == 1 and "trained on task 'pendulum'" in r.output

@@ -82,3 +82,27 @@ def test_a_solve_past_the_limit_is_not_converged_and_guarded_solves_equal_unguar
     monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "60")
     again = solver.solve(xi, *guess)
     assert again.converged and again.cost == plain.cost
+
+
+def test_the_double_pendulum_instance_that_hangs_fatrop_is_stopped(monkeypatch):
+    """A real hang, not a sleep: from the naive guess, this double-pendulum instance (fig2, seed 2,
+    iteration 3, instance 16, where the 300 s limit fired in three runs) takes fatrop 1.1.8 into
+    its restoration phase, where after iteration 24r (constraint violation 9e4) it never returns.
+    The same xi rounded to float32 ends in 20 iterations (LocalInfeasibility). Whether or not a later
+    fatrop fixes the loop, the solve must come back soon after the limit, never later."""
+    from sdp_cli.tasks import get_task
+    from sdp_cli.trajopt import get_solver
+
+    task = get_task("double_pendulum")
+    solver = get_solver(task)
+    xi = np.array([3.2693370019778207, -0.40105812656296724, 0.0, 0.0])   # as stored, to the last bit
+    limit = 3.0
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", str(limit))
+    t0 = time.monotonic()
+    res = solver.solve(xi, *task.naive_guess(xi))
+    elapsed = time.monotonic() - t0
+    assert elapsed < limit + 20
+    if elapsed >= limit:
+        assert not res.converged and "SDP_SOLVE_TIMEOUT" in res.status
+    again = solver.solve(xi + np.array([0.0, 0.0, 1e-3, 0.0]), *task.naive_guess(xi))   # the next solve still runs
+    assert np.isfinite(again.solve_time) and again.solve_time < limit

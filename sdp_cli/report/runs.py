@@ -52,9 +52,34 @@ def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
     if not frames:
         raise SdpError(f"no evaluation results (eval.csv with its manifest) under {root}; run `sdp loop` or "
                        "`dvc repro` first")
-    df = pd.concat(frames, ignore_index=True)
+    df = _recount_policy_wins(pd.concat(frames, ignore_index=True))
     if "train_seed" in df:
         df["train_seed"] = df["train_seed"].fillna(0).astype(int)
+    return df
+
+
+def _recount_policy_wins(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows evaluated before ``policy_ties`` existed counted a shared optimum as a policy win: recount
+    ``policy_wins`` and ``policy_ties`` from their refine artifacts (rows without one get NaN)."""
+    if "policy_wins" not in df:
+        return df
+    old = df["policy_ties"].isna() if "policy_ties" in df else pd.Series(True, index=df.index)
+    if not old.any():
+        return df
+    from sdp_cli.solve_jobs import policy_outcomes
+
+    df = df.copy()
+    if "policy_ties" not in df:
+        df["policy_ties"] = np.nan
+    df["policy_wins"] = df["policy_wins"].astype(float)
+    for i in df.index[old]:
+        refined = df.at[i, "refined"] if "refined" in df else None
+        if not isinstance(refined, str) or not Path(refined).is_file():
+            df.loc[i, ["policy_wins", "policy_ties"]] = np.nan
+            continue
+        with np.load(refined) as d:
+            df.loc[i, ["policy_wins", "policy_ties"]] = policy_outcomes(
+                d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
     return df
 
 

@@ -1,10 +1,15 @@
 """A wall-clock limit on solver calls: a forked solver process, killed and re-forked past the limit.
 
 fatrop has no time limit (casadi's fatrop interface accepts neither ``max_wall_time`` nor
-``max_cpu_time``), and its line search can loop without end: a non-finite or absurd guess is
-refused before the solver starts (:meth:`TrajOptSolver.solve_from`), but a finite, moderate guess
-from a policy rollout also hung one collection of the double pendulum loop for more than 40
-minutes (fig2, seed 2, iteration 3). A blocking C call cannot be interrupted from Python inside
+``max_cpu_time``), and it can run without end: a non-finite or absurd guess is refused before the
+solver starts (:meth:`TrajOptSolver.solve_from`), but a finite, moderate guess hung one collection
+of the double pendulum loop for more than 40 minutes before this guard existed (fig2, seed 2,
+iteration 3). That case is reproducible and the guess was the naive one, not the policy's: TO from
+the naive guess on instance 16 of that collection (xi = (3.2693370019778207, -0.40105812656296724,
+0, 0)) enters fatrop 1.1.8's restoration phase at iteration 21, and after iteration 24r (constraint
+violation 9e4) never returns; the same xi rounded to float32 ends after 20 iterations
+(LocalInfeasibility). Under this guard the fig2 runs of seed 2 stop it at 300.1 s and record it as
+not converged (tests/test_solve_timeout.py solves it with a 3 s limit). A blocking C call cannot be interrupted from Python inside
 its process, so the calls run in a child process forked from the one that built the solver
 (:class:`ForkServer`: the solver and its compiled functions are inherited, nothing is rebuilt),
 one request at a time through pipes. Past the limit the child is killed, :class:`SolveTimeout`
