@@ -6,7 +6,8 @@ rollouts violating a constraint (``violation_rate``) and the median final distan
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
-others), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time;
+others), ``policy_wins`` / ``policy_ties`` (instances where the policy guess beat TO alone, or reached
+the same optimum: ArgminCost keeps the policy's solve on both, only the first says anything), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time;
 with ``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*``
 from the naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that
 ``sdp report`` can aggregate across seeds.
@@ -168,9 +169,18 @@ def evaluation_artifacts(rollouts: str | os.PathLike, refined: str | os.PathLike
         rrev = (rmeta.get("provenance") or {}).get("git_rev") or "unknown"
         revs += [rrev] if rrev != revs[0] else []
     return {"rollouts": existing(rollouts), "refined": existing(refined),
-            "policy": existing((meta.get("config") or {}).get("policy")),
+            "policy": existing(_recorded_policy((meta.get("config") or {}).get("policy"), Path(rollouts).parent)),
             "data": existing(resolve_recorded((meta.get("policy_dataset") or {}).get("path"), Path(rollouts).parent)),
             "git_rev": "+".join(revs)}
+
+
+def _recorded_policy(path: str | None, folder: Path) -> Path | None:
+    """A rollout's recorded policy: relative to the rollout's folder, or (rollouts written before
+    that) absolute or relative to the folder `sdp rollout` ran in."""
+    if not path:
+        return None
+    here = resolve_recorded(path, folder)
+    return here if here.exists() or Path(path).is_absolute() else Path(path)
 
 
 def manifest_path(csv: str | os.PathLike) -> Path:

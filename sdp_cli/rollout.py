@@ -166,7 +166,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     ev = evaluate_rollouts(task, traj["X"], traj["U"], xis)
     arrays = {**traj, **ev, "xi": xis}
     ck_cfg = policy.config.to_dict() if hasattr(policy.config, "to_dict") else {}
-    path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": str(policy_path)},
+    path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": portable_path(policy_path, Path(out).parent)},
                     device=str(policy.device), task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
                     policy_epoch=policy.checkpoint_epoch, policy_dataset=_dataset_record(policy.dataset_info, out),

@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
-from sdp_cli.data.artifacts import load_npz
+from sdp_cli.data.artifacts import load_npz, resolve_recorded
 from sdp_cli.evaluate import is_timing_column
 
 runner = CliRunner()
@@ -41,7 +41,9 @@ def test_loop_writes_every_iteration(loop_dir):
     _, m0 = load_npz(loop_dir / "it0" / "data.npz", kind="dataset")
     _, m1 = load_npz(loop_dir / "it1" / "data.npz", kind="dataset")
     assert m0["config"]["policy"] is None
-    assert m1["config"]["policy"] == str(loop_dir / "it0" / "policy") and m1["config"]["t_a"] == 4
+    # recorded relative to the dataset's folder, and resolving there
+    assert m1["config"]["policy"] == "../it0/policy" and m1["config"]["t_a"] == 4
+    assert resolve_recorded(m1["config"]["policy"], loop_dir / "it1") == (loop_dir / "it0" / "policy").resolve()
     assert m0["config"]["seed"] != m1["config"]["seed"]
     # the warm-started collection and the evaluation's refinement share one schema of per-instance records
     d1, _ = load_npz(loop_dir / "it1" / "data.npz", kind="dataset")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -133,6 +134,9 @@ def test_rollout_refine_evaluate_cli(trained, tmp_path, method):
     assert r.exit_code == 0, r.output
     a, meta = load_npz(ro, kind="rollout")
     assert a["X"].shape == (3, 101, 2) and a["cost"].shape == (3,) and meta["method"] == method
+    # the policy is recorded relative to the rollout's folder and resolves from there
+    assert not Path(meta["config"]["policy"]).is_absolute()
+    assert (ro.parent / meta["config"]["policy"]).resolve() == Path(trained[method]).resolve()
     r = runner.invoke(app, ["refine", "--rollouts", str(ro), "--out", str(rf), "--workers", "1"])
     assert r.exit_code == 0, r.output
     d, dmeta = load_npz(rf, kind="dataset")
@@ -209,3 +213,16 @@ def test_single_shooting_baseline_is_reported_from_both_guesses(trained, tmp_pat
     assert row["ss_to_alone_converged_rate"] == 1.0
     assert row["ss_to_alone_cost_mean"] == pytest.approx(float(np.mean(d["inst_ss_base_cost"])))
     assert "ss_refined_cost_mean" in row
+
+
+def test_a_rollout_names_its_policy_from_its_folder_and_older_ones_from_where_they_ran(tmp_path, monkeypatch):
+    from sdp_cli.evaluate import _recorded_policy
+
+    (tmp_path / "runs" / "policy").mkdir(parents=True)
+    (tmp_path / "runs" / "eval").mkdir()
+    monkeypatch.chdir(tmp_path)
+    want = (tmp_path / "runs" / "policy").resolve()
+    assert _recorded_policy("../policy", tmp_path / "runs" / "eval").resolve() == want       # this code's record
+    assert _recorded_policy("runs/policy", tmp_path / "runs" / "eval").resolve() == want     # older: cwd-relative
+    assert _recorded_policy(str(want), tmp_path / "runs" / "eval") == want                   # older: absolute
+    assert _recorded_policy(None, tmp_path) is None

@@ -24,7 +24,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz, save_npz, split_timing
+from sdp_cli.data.artifacts import (atomic_write_bytes, check_writable, load_npz, portable_path, save_npz,
+                                    split_timing)
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
 from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, refine_index,  # noqa: F401
@@ -303,8 +304,10 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
         arrays["inst_index"] = np.asarray(tried, dtype=int)
     dims = task.dims()
     arrays, timing = split_timing(arrays)   # clock readings go to the timing sidecar
-    path = save_npz(out, arrays, kind="dataset", config={**asdict(config), "workers": described.get("workers"),
-                                                       "executor": described},
+    # the policy relative to the dataset's folder (as a checkpoint records its dataset): clone-independent bytes
+    policy = portable_path(config.policy, Path(out).parent) if config.policy else None
+    path = save_npz(out, arrays, kind="dataset",
+                    config={**asdict(config), "policy": policy, "workers": described.get("workers"), "executor": described},
                     task=config.task, task_options=config.task_options, task_params=task.params(), dims=dims,
                     stats={"attempts": stats.attempts, "kept": len(kept), "rejected": stats.rejected,
                            "convergence_rate": stats.convergence_rate},
