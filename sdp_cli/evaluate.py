@@ -34,6 +34,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
+from sdp_cli.argmin import policy_outcomes
 from sdp_cli.errors import SdpError
 
 
@@ -106,8 +107,6 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         dt, m = load_timing(refined), len(cost)
         pol_ok, base_ok = d["inst_pol_converged"].astype(bool), d["inst_base_converged"].astype(bool)
         tried = d["inst_pol_iterations"] >= 0
-        from sdp_cli.solve_jobs import policy_outcomes   # (imports the tasks: only where a refine is read)
-
         wins, ties = policy_outcomes(d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], base_ok)
         best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
                         np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))

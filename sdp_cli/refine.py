@@ -16,10 +16,11 @@ from typing import Callable
 
 import numpy as np
 
+from sdp_cli.argmin import (TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost,  # noqa: F401 (re-exported)
+                            policy_outcomes)
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
-from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, TIE_RTOL, WIN_BASELINE, WIN_NONE,  # noqa: F401 (re-exported)
-                                 WIN_POLICY, argmin_cost, failed_record, instance_arrays, policy_outcomes,
-                                 refine_instance, usable_guess, warm_solver)
+from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, failed_record, instance_arrays, refine_instance, usable_guess,
+                                warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params

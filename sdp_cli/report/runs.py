@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.argmin import policy_outcomes
 from sdp_cli.errors import SdpError
 from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, read_evaluation, read_manifest
 
@@ -66,8 +67,6 @@ def _recount_policy_wins(df: pd.DataFrame) -> pd.DataFrame:
     old = df["policy_ties"].isna() if "policy_ties" in df else pd.Series(True, index=df.index)
     if not old.any():
         return df
-    from sdp_cli.solve_jobs import policy_outcomes
-
     df = df.copy()
     if "policy_ties" not in df:
         df["policy_ties"] = np.nan
