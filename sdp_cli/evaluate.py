@@ -2,7 +2,8 @@
 
 Columns: method, task, n_traj, epochs, t_a, k_rollout, horizon (T_h), seed, n, mean/median policy cost,
 success rate (reached the goal without diverging), divergences, max constraint violation, the share of
-rollouts violating a constraint (``violation_rate``) and the median final distance to the goal,
+rollouts violating a constraint (``violation_rate``, and per constraint group, e.g.
+``obstacles_violation_rate``) and the median final distance to the goal,
 the paper's *refined* metrics (``refined_*``: TO warm-started by the policy rollout, cost over
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
@@ -63,6 +64,24 @@ def _timed(arrays: dict, timing: dict, key: str, n: int) -> np.ndarray:
     return v if v.shape == (n,) else np.full(n, np.nan)
 
 
+def group_violation_rates(r: dict, meta: dict) -> dict[str, float]:
+    """``<group>_violation_rate`` per constraint group (``controls``, ``floor_ceiling``, ``obstacles``, ...):
+    the share of rollouts breaking that group beyond :data:`VIOLATION_TOL` (diverged ones count as breaking).
+    From the rollout's ``violation_<group>`` arrays, or, for rollouts written before those existed,
+    recomputed from its ``X``, ``U`` and ``xi`` with the task it names."""
+    arrays = {k[len("violation_"):]: np.asarray(v, float) for k, v in r.items() if k.startswith("violation_")}
+    if not arrays and all(k in r for k in ("X", "U", "xi")):
+        from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
+
+        task = get_task(meta.get("task"), **(meta.get("task_options") or {}))
+        arrays = {g: np.full(len(r["xi"]), np.inf) for g in ("controls", *task.state_constraint_groups())}
+        for i, (X, U, xi) in enumerate(zip(r["X"], r["U"], r["xi"])):
+            if np.all(np.isfinite(X)) and np.all(np.isfinite(U)):
+                for g, v in task.violations_by_group(X, U, xi).items():
+                    arrays[g][i] = v
+    return {f"{g}_violation_rate": float(np.mean(~(v <= VIOLATION_TOL))) for g, v in arrays.items()}
+
+
 def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
@@ -85,6 +104,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         # share of rollouts that break a constraint (an obstacle, the floor or ceiling) beyond the solver's
         # feasibility tolerance; diverged rollouts count as violating
         "violation_rate": float(np.mean(~(np.asarray(r["max_violation"], float) <= VIOLATION_TOL))),
+        **group_violation_rates(r, rmeta),
         "goal_distance_median": (float(np.nanmedian(r["goal_distance"]))
                                  if "goal_distance" in r and np.isfinite(r["goal_distance"]).any() else float("nan")),
         "rollout_time": float(r.get("rollout_time", load_timing(rollouts).get("rollout_time", np.nan))),

@@ -126,20 +126,25 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
 
 
 def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray) -> dict[str, np.ndarray]:
-    """True cost, constraint violation, divergence and goal flags per instance."""
+    """True cost, constraint violation (the max, and per constraint group: ``violation_<group>``, e.g.
+    ``violation_obstacles``), divergence and goal flags per instance ``(N,)``."""
     n = len(xis)
     cost, viol, goal = np.full(n, np.inf), np.full(n, np.inf), np.full(n, np.inf)
+    groups = {g: np.full(n, np.inf) for g in ("controls", *task.state_constraint_groups())}
     for i in range(n):
         if np.all(np.isfinite(X[i])) and np.all(np.isfinite(U[i])):
             cost[i] = task.cost(X[i], U[i], xis[i])
-            viol[i] = task.constraint_violation(X[i], U[i], xis[i])
+            by_group = task.violations_by_group(X[i], U[i], xis[i])
+            for g, v in by_group.items():
+                groups[g][i] = v
+            viol[i] = max(by_group.values())
             try:
                 goal[i] = task.goal_distance(X[i, -1], xis[i])
             except NotImplementedError:
                 goal[i] = np.nan
     diverged = ~np.isfinite(cost) | (cost > DIVERGENCE_COST)
     return {"cost": cost, "max_violation": viol, "goal_distance": goal, "diverged": diverged,
-            "reached": (goal <= task.goal_tolerance) & ~diverged}
+            "reached": (goal <= task.goal_tolerance) & ~diverged, **{f"violation_{g}": v for g, v in groups.items()}}
 
 
 def _dataset_record(info: dict, out: str | os.PathLike) -> dict:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -160,7 +161,13 @@ def test_quadrotor_rules_per_layout():
         return pd.DataFrame(rows)
 
     r = quadrotor_precision({"fig4": fig4(dp_violates=0.3)})
-    assert r.verdict == "reproduced" and "quadrotor-1: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%" in r.ours
+    assert r.verdict == "reproduced" and "quadrotor-1: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%," in r.ours
+    d = fig4(dp_violates=0.3)
+    d["obstacles_violation_rate"] = np.where(d.method == "dp", 0.25, 0.0)
+    d.loc[d.task == "quadrotor-0", "obstacles_violation_rate"] = np.nan                # no obstacle there
+    r = quadrotor_precision({"fig4": d})
+    assert "constraint violated SDP 0% vs DP 30% (an obstacle: SDP 0% vs DP 25%)" in r.ours
+    assert "quadrotor-0: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%, final" in r.ours
     assert quadrotor_precision({"fig4": fig4(dp_violates=0.3, layouts=("quadrotor-0",))}).verdict == "partly"
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
     assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x

@@ -75,7 +75,7 @@ def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 1, "n": 2, "epochs": 5,
            "policy_cost_mean": 1.0, "policy_cost_median": 1.0, "success_rate": 1.0, "rollout_time": 0.5,
-           "run": "my-run", "iteration": 3}
+           "run": "my-run", "iteration": 3, "controls_violation_rate": 0.0}   # (a row of this code: no rollout re-read)
     d = tmp_path / "runs" / "anywhere" / "deep"      # no it<k> folder: nothing is guessed from the path
     d.mkdir(parents=True)
     ro = d / "r.npz"
@@ -113,3 +113,21 @@ def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_p
     assert np.isnan(got.loc[1, "policy_wins"]) and np.isnan(got.loc[1, "policy_ties"])   # no refine: unknown
     new = pd.DataFrame({"policy_wins": [4], "policy_ties": [1], "refined": [str(refined)]})
     pd.testing.assert_frame_equal(_recount_policy_wins(new), new)                          # new rows kept as is
+
+
+def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp_path):
+    import numpy as np
+    import pandas as pd
+
+    from sdp_cli.data.artifacts import save_npz
+    from sdp_cli.report.runs import _add_violation_groups
+
+    X, U = np.zeros((2, 101, 2)), np.zeros((2, 100, 1))
+    U[1, 7] = 30.0                                                   # above the pendulum's 25 N m bound
+    ro = save_npz(tmp_path / "r.npz", {"X": X, "U": U, "xi": np.zeros((2, 2)), "cost": np.zeros(2)},
+                  kind="rollout", config={}, task="pendulum", task_options={})
+    old = pd.DataFrame({"violation_rate": [0.5, 0.0], "rollouts": [str(ro), None]})
+    got = _add_violation_groups(old)
+    assert got.loc[0, "controls_violation_rate"] == 0.5 and np.isnan(got.loc[1, "controls_violation_rate"])
+    new = old.assign(controls_violation_rate=[0.25, 0.0])
+    pd.testing.assert_frame_equal(_add_violation_groups(new), new)   # rows of this code are kept as they are

@@ -310,3 +310,33 @@ def test_gains_at_a_grazing_contact_are_a_one_sided_derivative():
         assert min(rel) < 5e-2, (t, rel)            # measured 6e-4 and 1.8e-2
         kinks += np.linalg.norm(fwd - bwd) / np.linalg.norm(kd) > 0.1
     assert kinks == len(steps)
+
+
+def test_violations_are_told_apart_by_group_in_the_task_and_the_evaluation():
+    """A path through the column breaks ``obstacles`` only, one below the floor ``floor_ceiling`` only; the
+    evaluation's per-group rates are the same from a rollout's stored arrays and recomputed from its X."""
+    from sdp_cli.evaluate import group_violation_rates
+    from sdp_cli.rollout import evaluate_rollouts
+
+    task = get_task("quadrotor-1")
+    assert set(task.state_constraint_groups()) == {"floor_ceiling", "obstacles"}
+    assert set(get_task("quadrotor-0").state_constraint_groups()) == {"floor_ceiling"}
+    xi = task.sample_xi(np.random.default_rng(3))
+    X, U = task.naive_guess(xi)
+    through = np.linspace([-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], task.T + 1)       # across the column at (0, 0)
+    low = np.linspace([-1.0, 2.0, -0.3], [1.0, 2.0, -0.3], task.T + 1)         # far from it, under the floor
+    fine = np.linspace([-1.0, 2.0, 1.0], [1.0, 2.0, 1.0], task.T + 1)
+    Xs = np.stack([np.concatenate([p, X[:, 3:]], axis=1) for p in (through, low, fine)])
+    Us = np.stack([U, U, U + 10.0])                                            # the third breaks the thrust bound
+    by = [task.violations_by_group(Xi, Ui, xi) for Xi, Ui in zip(Xs, Us)]
+    assert by[0]["obstacles"] > 0.1 and by[0]["floor_ceiling"] == 0 and by[0]["controls"] == 0
+    assert by[1]["floor_ceiling"] == pytest.approx(0.3) and by[1]["obstacles"] == 0
+    assert by[2]["controls"] == pytest.approx(U[0, 0] + 10.0 - U_MAX) and by[2]["obstacles"] == by[2]["floor_ceiling"] == 0
+    for Xi, Ui, b in zip(Xs, Us, by):
+        assert task.constraint_violation(Xi, Ui, xi) == max(b.values())
+    xis = np.stack([xi] * 3)
+    ev = evaluate_rollouts(task, Xs, Us, xis)
+    want = {"controls_violation_rate": 1 / 3, "floor_ceiling_violation_rate": 1 / 3, "obstacles_violation_rate": 1 / 3}
+    assert group_violation_rates(ev, {}) == pytest.approx(want)
+    older = {"X": Xs, "U": Us, "xi": xis}                                      # a rollout without the group arrays
+    assert group_violation_rates(older, {"task": "quadrotor-1"}) == pytest.approx(want)

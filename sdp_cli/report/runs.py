@@ -16,8 +16,10 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.argmin import policy_outcomes
+from sdp_cli.data.artifacts import load_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, read_evaluation, read_manifest
+from sdp_cli.evaluate import (ARTIFACT_KEYS, MANIFEST_SUFFIX, group_violation_rates, read_evaluation,
+                               read_manifest)
 
 #: columns load_runs adds that hold paths on this machine (never written to committed tables)
 PATH_COLUMNS = ("source", *ARTIFACT_KEYS)
@@ -53,7 +55,7 @@ def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
     if not frames:
         raise SdpError(f"no evaluation results (eval.csv with its manifest) under {root}; run `sdp loop` or "
                        "`dvc repro` first")
-    df = _recount_policy_wins(pd.concat(frames, ignore_index=True))
+    df = _add_violation_groups(_recount_policy_wins(pd.concat(frames, ignore_index=True)))
     if "train_seed" in df:
         df["train_seed"] = df["train_seed"].fillna(0).astype(int)
     return df
@@ -79,6 +81,23 @@ def _recount_policy_wins(df: pd.DataFrame) -> pd.DataFrame:
         with np.load(refined) as d:
             df.loc[i, ["policy_wins", "policy_ties"]] = policy_outcomes(
                 d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
+    return df
+
+
+def _add_violation_groups(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows evaluated before the per-group violation rates existed (``obstacles_violation_rate``, ...) get
+    them from their rollout artifacts (:func:`sdp_cli.evaluate.group_violation_rates`)."""
+    old = df["controls_violation_rate"].isna() if "controls_violation_rate" in df else pd.Series(True, index=df.index)
+    todo = [i for i in df.index[old] if isinstance(df.at[i, "rollouts"], str) and Path(df.at[i, "rollouts"]).is_file()]
+    if not todo:
+        return df
+    df = df.copy()
+    for i in todo:
+        r, meta = load_npz(df.at[i, "rollouts"], kind="rollout")
+        for col, v in group_violation_rates(r, meta).items():
+            if col not in df:
+                df[col] = np.nan
+            df.at[i, col] = v
     return df
 
 

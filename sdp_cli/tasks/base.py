@@ -359,13 +359,24 @@ class Task(ABC):
         run = self.f_running_cost.map(len(U))(X[:-1].T, U.T, np.repeat(xi[:, None], len(U), 1))
         return float(run.full().sum() + float(self.f_terminal_cost(X[-1], xi)))
 
-    def constraint_violation(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
-        """Max violation of control bounds and state constraints (0 when feasible)."""
-        viol = max(0.0, float(np.max(U - self.u_ub, initial=0.0)), float(np.max(self.u_lb - U, initial=0.0)))
+    def state_constraint_groups(self) -> dict[str, slice]:
+        """Named groups of the rows of ``h`` (e.g. the quadrotor's ``floor_ceiling`` and ``obstacles``), so
+        that an evaluation can say which constraint a rollout broke; empty groups are left out."""
+        return {"state": slice(0, self.n_h)} if self.n_h else {}
+
+    def violations_by_group(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> dict[str, float]:
+        """Max violation per group (0 when feasible): ``controls`` (the bounds) and each
+        :meth:`state_constraint_groups` group over x_1..x_T. ``X (T+1, nx)``, ``U (T, nu)``, ``xi (n_xi,)``."""
+        out = {"controls": max(0.0, float(np.max(U - self.u_ub, initial=0.0)), float(np.max(self.u_lb - U, initial=0.0)))}
         if self.n_h:
             h = self.f_state_constraints.map(len(X) - 1)(X[1:].T, np.repeat(xi[:, None], len(X) - 1, 1)).full()
-            viol = max(viol, float(np.max(h, initial=0.0)))
-        return viol
+            for name, rows in self.state_constraint_groups().items():
+                out[name] = max(0.0, float(np.max(h[rows], initial=0.0)))
+        return out
+
+    def constraint_violation(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
+        """Max violation of control bounds and state constraints (0 when feasible)."""
+        return max(self.violations_by_group(X, U, xi).values())
 
 
 def check_task_params(task: Task, stored: dict | None, what: str) -> None:

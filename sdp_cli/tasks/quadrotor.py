@@ -231,6 +231,12 @@ class QuadrotorTask(Task):
     def _terminal_cost(self, x, xi):
         return W_TERMINAL * self._state_cost(x, xi)
 
+    def state_constraint_groups(self) -> dict[str, slice]:
+        groups = {"floor_ceiling": slice(0, 2)}
+        if len(self.columns):
+            groups["obstacles"] = slice(2, self.n_h)
+        return groups
+
     def _state_constraints(self, x, xi):
         z = x[2]
         h = [Z_FLOOR - z, z - Z_CEIL]
