@@ -8,7 +8,8 @@ the paper's *refined* metrics (``refined_*``: TO warm-started by the policy roll
 its converged instances, convergence rate, iterations, solve time), ``argmin_cost_mean``
 (ArgminCost of refined and TO alone, <= TO alone by construction, shown only beside the
 others), ``policy_wins`` / ``policy_ties`` (instances where the policy guess beat TO alone, or reached
-the same optimum: ArgminCost keeps the policy's solve on both, only the first says anything), TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time;
+the same optimum: ArgminCost keeps the policy's solve on both, only the first says anything),
+TO-alone cost (naive guess), convergence rate, iterations and solve time, rollout time;
 with ``sdp refine --single-shooting``, the same for the single-shooting baseline (``ss_to_alone_*``
 from the naive controls, ``ss_refined_*`` from the policy's controls). Written as CSV so that
 ``sdp report`` can aggregate across seeds.
@@ -33,9 +34,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.argmin import policy_outcomes
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
-from sdp_cli.argmin import policy_outcomes
 from sdp_cli.errors import SdpError
 
 
@@ -74,11 +75,7 @@ def group_violation_rates(r: dict, meta: dict) -> dict[str, float]:
         from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
 
         task = get_task(meta.get("task"), **(meta.get("task_options") or {}))
-        arrays = {g: np.full(len(r["xi"]), np.inf) for g in ("controls", *task.state_constraint_groups())}
-        for i, (X, U, xi) in enumerate(zip(r["X"], r["U"], r["xi"])):
-            if np.all(np.isfinite(X)) and np.all(np.isfinite(U)):
-                for g, v in task.violations_by_group(X, U, xi).items():
-                    arrays[g][i] = v
+        arrays = task.violations_per_instance(r["X"], r["U"], r["xi"])
     return {f"{g}_violation_rate": float(np.mean(~(v <= VIOLATION_TOL))) for g, v in arrays.items()}
 
 

@@ -129,15 +129,12 @@ def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray)
     """True cost, constraint violation (the max, and per constraint group: ``violation_<group>``, e.g.
     ``violation_obstacles``), divergence and goal flags per instance ``(N,)``."""
     n = len(xis)
-    cost, viol, goal = np.full(n, np.inf), np.full(n, np.inf), np.full(n, np.inf)
-    groups = {g: np.full(n, np.inf) for g in ("controls", *task.state_constraint_groups())}
+    cost, goal = np.full(n, np.inf), np.full(n, np.inf)
+    groups = task.violations_per_instance(X, U, xis)
+    viol = np.max(np.stack(list(groups.values())), axis=0)
     for i in range(n):
         if np.all(np.isfinite(X[i])) and np.all(np.isfinite(U[i])):
             cost[i] = task.cost(X[i], U[i], xis[i])
-            by_group = task.violations_by_group(X[i], U[i], xis[i])
-            for g, v in by_group.items():
-                groups[g][i] = v
-            viol[i] = max(by_group.values())
             try:
                 goal[i] = task.goal_distance(X[i, -1], xis[i])
             except NotImplementedError:

@@ -374,6 +374,16 @@ class Task(ABC):
                 out[name] = max(0.0, float(np.max(h[rows], initial=0.0)))
         return out
 
+    def violations_per_instance(self, X: np.ndarray, U: np.ndarray, xis: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`violations_by_group` of a batch: ``X (N, T+1, nx)``, ``U (N, T, nu)``, ``xis (N, n_xi)`` ->
+        ``{group: (N,)}``; inf for a trajectory with non-finite entries (a diverged rollout)."""
+        out = {g: np.full(len(xis), np.inf) for g in ("controls", *self.state_constraint_groups())}
+        for i, (Xi, Ui, xi) in enumerate(zip(X, U, xis)):
+            if np.all(np.isfinite(Xi)) and np.all(np.isfinite(Ui)):
+                for g, v in self.violations_by_group(Xi, Ui, xi).items():
+                    out[g][i] = v
+        return out
+
     def constraint_violation(self, X: np.ndarray, U: np.ndarray, xi: np.ndarray) -> float:
         """Max violation of control bounds and state constraints (0 when feasible)."""
         return max(self.violations_by_group(X, U, xi).values())
