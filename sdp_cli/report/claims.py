@@ -264,7 +264,7 @@ def sdp_reaches_to(res) -> Row:
             ok.append(np.isfinite(_first_n(g, to)))
             parts.append(f"{task}: TO alone {to:.3g}, SDP within 10% " + _n_text(g, to))
         return Row("; ".join(parts), "reproduced" if all(ok) and len(ok) >= 3 else "partly" if any(ok) else "not reproduced",
-                   _fig1_missing(res["fig1"]))
+                   _fig1_missing(res["fig1"], ("sdp",)))
     d = res["ablation_k"]
     g = d[(d.k_rollout == 5) & (d.epochs == d.epochs.max())]
     to = g.to_alone_cost_mean.mean()
@@ -278,10 +278,12 @@ def sdp_reaches_to(res) -> Row:
 FIG1_TASKS = ("pendulum", "ur5-fixed", "quadrotor-0")
 
 
-def _fig1_missing(d: pd.DataFrame) -> str:
-    """``"fig1 not run on ..."`` for Fig. 1's tasks without a run in ``d`` ("" when all have one)."""
-    missing = [t for t in FIG1_TASKS if t not in set(d.task)]
-    return f"fig1 not run on {', '.join(missing)}" if missing else ""
+def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...]) -> str:
+    """``"fig1 not run on ..."`` for Fig. 1's tasks where ``d`` lacks a run of one of ``methods`` ("" when
+    none): a task with only PDDP runs is no evidence for a claim about SDP and DP."""
+    missing = [t for t in FIG1_TASKS if not all(((d.task == t) & (d.method == m)).any() for m in methods)]
+    what = "/".join(m.upper() for m in methods)
+    return f"fig1 not run on {', '.join(missing)} ({what})" if missing else ""
 
 
 def _fig1_final(res) -> pd.DataFrame:
@@ -333,7 +335,7 @@ def dp_needs_more(res) -> Row:
         verdicts.append(ratio_verdict(r, 5.0) if not bound or r >= 3 else "partly")
     if not verdicts:
         return Row("", "not run", "fig1 has no task with both SDP and DP")
-    missing = _fig1_missing(d)
+    missing = _fig1_missing(d, ("sdp", "dp"))
     verdict = combine(verdicts)
     verdict = "partly" if missing and verdict == "reproduced" else verdict   # a claim over Fig. 1's tasks
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
