@@ -216,7 +216,18 @@ def test_fig1_claims_on_synthetic_rows():
     assert r.verdict == "reproduced" and "success 90%" in r.ours
     r = mlp_unstable({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "solves at n_traj 8, 16" in r.ours
+    assert "unstable on pendulum, quadrotor-0, ur5-fixed" in r.ours
     assert "pendulum: DP 0%, PDDP_S 50%, SDP 0%; quadrotor-0: DP 0%, PDDP_S 50%" in r.ours
+    # stable on the pendulum (many seeds), diverging on every UR5 evaluation (one seed): unstable per task,
+    # whatever the pooled share says -> partly
+    d = _fig1_rows()
+    d.loc[d.task == "pendulum", "diverged"] = 0
+    d.loc[(d.task == "ur5-fixed") & (d.method == "pddp_s"), "diverged"] = 30
+    d = pd.concat([d[d.task != "ur5-fixed"]] * 5 + [d[(d.task == "ur5-fixed") & (d.train_seed == 0)]])
+    d = d[d.task != "quadrotor-0"]
+    r = mlp_unstable({"fig1": d})
+    assert "unstable on ur5-fixed" in r.ours and "pendulum: DP 0%, PDDP_S 0%, SDP 0%" in r.ours
+    assert r.verdict == "partly"
 
 
 def test_fig3_claim_per_horizon_and_action_length():
