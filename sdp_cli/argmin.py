@@ -18,6 +18,11 @@ WIN_NONE, WIN_POLICY, WIN_BASELINE = -1, 0, 1
 TIE_RTOL = 1e-9
 
 
+def tie_tolerance(cost):
+    """The cost difference within which a solve ties with one of cost ``cost`` (scalar or array)."""
+    return TIE_RTOL * np.maximum(1.0, np.abs(cost))
+
+
 def argmin_cost(candidates: Sequence) -> int | None:
     """Index of the converged candidate with the lowest cost; None if none converged.
 
@@ -30,7 +35,7 @@ def argmin_cost(candidates: Sequence) -> int | None:
     for i, c in enumerate(candidates):
         if c is None or not bool(c.converged) or not np.isfinite(c.cost):
             continue
-        if c.cost < best_cost - TIE_RTOL * max(1.0, abs(best_cost) if np.isfinite(best_cost) else 0.0):
+        if c.cost < best_cost - (tie_tolerance(best_cost) if np.isfinite(best_cost) else TIE_RTOL):
             best, best_cost = i, float(c.cost)
     return best
 
@@ -44,5 +49,5 @@ def policy_outcomes(winner, pol_cost, base_cost, base_converged) -> tuple[int, i
     kept = winner == WIN_POLICY
     base_ok = np.asarray(base_converged).astype(bool) & np.isfinite(base_cost)
     with np.errstate(invalid="ignore"):
-        tie = base_ok & (np.abs(base_cost - pol_cost) <= TIE_RTOL * np.maximum(1.0, np.abs(base_cost)))
+        tie = base_ok & (np.abs(base_cost - pol_cost) <= tie_tolerance(pol_cost))
     return int(np.sum(kept & ~tie)), int(np.sum(kept & tie))

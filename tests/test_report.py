@@ -102,17 +102,17 @@ def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_p
     import numpy as np
     import pandas as pd
 
-    from sdp_cli.report.runs import _recount_policy_wins
+    from sdp_cli.report.runs import _backfill_older_rows
 
     refined = tmp_path / "refined.npz"
     np.savez(refined, inst_winner=np.array([0, 0, 1]), inst_pol_cost=np.array([2.5, 1.0, 3.0]),
              inst_base_cost=np.array([2.5, 2.0, 2.0]), inst_base_converged=np.array([True, True, True]))
     old = pd.DataFrame({"policy_wins": [2, 5], "refined": [str(refined), None]})
-    got = _recount_policy_wins(old)
+    got = _backfill_older_rows(old)
     assert got.loc[0, "policy_wins"] == 1 and got.loc[0, "policy_ties"] == 1
     assert np.isnan(got.loc[1, "policy_wins"]) and np.isnan(got.loc[1, "policy_ties"])   # no refine: unknown
     new = pd.DataFrame({"policy_wins": [4], "policy_ties": [1], "refined": [str(refined)]})
-    pd.testing.assert_frame_equal(_recount_policy_wins(new), new)                          # new rows kept as is
+    pd.testing.assert_frame_equal(_backfill_older_rows(new), new)                          # new rows kept as is
 
 
 def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp_path):
@@ -120,14 +120,14 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
     import pandas as pd
 
     from sdp_cli.data.artifacts import save_npz
-    from sdp_cli.report.runs import _add_violation_groups
+    from sdp_cli.report.runs import _backfill_older_rows
 
     X, U = np.zeros((2, 101, 2)), np.zeros((2, 100, 1))
     U[1, 7] = 30.0                                                   # above the pendulum's 25 N m bound
     ro = save_npz(tmp_path / "r.npz", {"X": X, "U": U, "xi": np.zeros((2, 2)), "cost": np.zeros(2)},
                   kind="rollout", config={}, task="pendulum", task_options={})
     old = pd.DataFrame({"violation_rate": [0.5, 0.0], "rollouts": [str(ro), None]})
-    got = _add_violation_groups(old)
+    got = _backfill_older_rows(old)
     assert got.loc[0, "controls_violation_rate"] == 0.5 and np.isnan(got.loc[1, "controls_violation_rate"])
     new = old.assign(controls_violation_rate=[0.25, 0.0])
-    pd.testing.assert_frame_equal(_add_violation_groups(new), new)   # rows of this code are kept as they are
+    pd.testing.assert_frame_equal(_backfill_older_rows(new), new)   # rows of this code are kept as they are

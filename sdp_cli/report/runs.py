@@ -55,50 +55,49 @@ def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
     if not frames:
         raise SdpError(f"no evaluation results (eval.csv with its manifest) under {root}; run `sdp loop` or "
                        "`dvc repro` first")
-    df = _add_violation_groups(_recount_policy_wins(pd.concat(frames, ignore_index=True)))
+    df = _backfill_older_rows(pd.concat(frames, ignore_index=True))
     if "train_seed" in df:
         df["train_seed"] = df["train_seed"].fillna(0).astype(int)
     return df
 
 
-def _recount_policy_wins(df: pd.DataFrame) -> pd.DataFrame:
-    """Rows evaluated before ``policy_ties`` existed counted a shared optimum as a policy win: recount
-    ``policy_wins`` and ``policy_ties`` from their refine artifacts (rows without one get NaN)."""
-    if "policy_wins" not in df:
-        return df
-    old = df["policy_ties"].isna() if "policy_ties" in df else pd.Series(True, index=df.index)
+def _backfill(df: pd.DataFrame, marker: str, path_col: str, compute, stale: tuple[str, ...] = ()) -> pd.DataFrame:
+    """Rows evaluated by older code (no ``marker`` value) get the columns ``compute(path)`` returns from the
+    artifact named in ``path_col``; their ``stale`` columns, computed differently then, become NaN first
+    (and stay NaN where the artifact is gone)."""
+    old = df[marker].isna() if marker in df else pd.Series(True, index=df.index)
     if not old.any():
         return df
     df = df.copy()
-    if "policy_ties" not in df:
-        df["policy_ties"] = np.nan
-    df["policy_wins"] = df["policy_wins"].astype(float)
+    for col in (c for c in stale if c in df):
+        df[col] = df[col].astype(float).where(~old)
     for i in df.index[old]:
-        refined = df.at[i, "refined"] if "refined" in df else None
-        if not isinstance(refined, str) or not Path(refined).is_file():
-            df.loc[i, ["policy_wins", "policy_ties"]] = np.nan
-            continue
-        with np.load(refined) as d:
-            df.loc[i, ["policy_wins", "policy_ties"]] = policy_outcomes(
-                d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
+        path = df.at[i, path_col] if path_col in df else None
+        if isinstance(path, str) and Path(path).is_file():
+            for col, v in compute(path).items():
+                if col not in df:
+                    df[col] = np.nan
+                df.at[i, col] = v
     return df
 
 
-def _add_violation_groups(df: pd.DataFrame) -> pd.DataFrame:
-    """Rows evaluated before the per-group violation rates existed (``obstacles_violation_rate``, ...) get
-    them from their rollout artifacts (:func:`sdp_cli.evaluate.group_violation_rates`)."""
-    old = df["controls_violation_rate"].isna() if "controls_violation_rate" in df else pd.Series(True, index=df.index)
-    todo = [i for i in df.index[old] if isinstance(df.at[i, "rollouts"], str) and Path(df.at[i, "rollouts"]).is_file()]
-    if not todo:
-        return df
-    df = df.copy()
-    for i in todo:
-        r, meta = load_npz(df.at[i, "rollouts"], kind="rollout")
-        for col, v in group_violation_rates(r, meta).items():
-            if col not in df:
-                df[col] = np.nan
-            df.at[i, col] = v
-    return df
+def _policy_outcomes(refined: str) -> dict:
+    with np.load(refined) as d:   # only the four per-instance arrays, not the trajectories
+        wins, ties = policy_outcomes(d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
+    return {"policy_wins": wins, "policy_ties": ties}
+
+
+def _violation_groups(rollouts: str) -> dict:
+    return group_violation_rates(*load_npz(rollouts, kind="rollout"))
+
+
+def _backfill_older_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """Columns that older evaluations lack or computed differently, from the artifacts they name:
+    ``policy_wins`` / ``policy_ties`` (ties used to count as wins) from the refine, the per-group
+    violation rates (``obstacles_violation_rate``, ...) from the rollouts."""
+    if "policy_wins" in df:
+        df = _backfill(df, "policy_ties", "refined", _policy_outcomes, stale=("policy_wins", "policy_ties"))
+    return _backfill(df, "controls_violation_rate", "rollouts", _violation_groups)
 
 
 def mean_ci(values: pd.Series) -> tuple[float, float, int]:
