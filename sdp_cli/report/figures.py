@@ -101,38 +101,56 @@ def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
 
 
 def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+    """Fig. 1: the paper's quantity, the mean policy cost per dataset size (∞ where one diverged rollout
+    made the mean infinite), and beside it the policy's success rate, which the mean hides then.
+    One curve per (method, epochs), shifted a little along n_traj so that equal values stay visible."""
     d = df[(df.task == task) & (df.iteration == 0)]
     if d.empty or d["n_traj"].isna().all():
         return []
-    tab = _agg(d, ["method", "epochs", "n_traj"], "policy_cost_mean").sort_values(["method", "epochs", "n_traj"])
+    by = ["method", "epochs", "n_traj"]
+    tab = _agg(d, by, "policy_cost_mean").sort_values(by)
+    if "success_rate" in d:
+        succ = _agg(d, by, "success_rate").rename(columns={"mean": "success_mean", "ci95": "success_ci95"})
+        tab = tab.merge(succ.drop(columns="n_seeds"), on=by, how="left")
     to = mean_ci(d["to_alone_cost_mean"]) if "to_alone_cost_mean" in d else (np.nan, np.nan, 0)
     tab["to_alone_mean"] = to[0]
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
     top = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0) * 1.3
-    for (method, epochs), g in tab.groupby(["method", "epochs"]):
+    curves = list(tab.groupby(["method", "epochs"]))
+    for i, ((method, epochs), g) in enumerate(curves):
         ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
+        shift = 1.07 ** (i - (len(curves) - 1) / 2)       # multiplicative: the n_traj axis is log
+        kw = dict(ls=ls, marker=MARKERS.get(method, "o"), color=COLORS.get(method), capsize=3,
+                  label=f"{method.upper()} ({epochs} ep.)")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
-        ax.errorbar(g["n_traj"][ok], g["mean"][ok], yerr=g["ci95"][ok].fillna(0), ls=ls, marker="o",
-                    color=COLORS.get(method), capsize=3, label=f"{method.upper()} ({epochs} ep.)")
+        ax.errorbar(g["n_traj"][ok] * shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0), **kw)
         for n in g["n_traj"][~ok]:
-            ax.annotate("∞", (n, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
+            ax.annotate("∞", (n * shift, top), ha="center", va="top", fontsize=14, color=COLORS.get(method))
+        if "success_mean" in g:
+            ax2.errorbar(g["n_traj"] * shift, g["success_mean"], yerr=g["success_ci95"].fillna(0), **kw)
     if np.isfinite(to[0]):
         ax.axhline(to[0], color="black", ls=":", label="TO alone")
     n_all = tab["n_traj"].astype(float)
-    ax.set_xscale("log")
-    ax.set_xlim(n_all.min() / 1.5, n_all.max() * 1.5)  # also when every mean diverged (no point drawn)
     from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
 
-    ax.xaxis.set_major_locator(FixedLocator(sorted(set(n_all))))     # the dataset sizes run
-    ax.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
-    ax.xaxis.set_minor_formatter(NullFormatter())
+    for a in (ax, ax2):
+        a.set_xscale("log")
+        a.set_xlim(n_all.min() / 1.5, n_all.max() * 1.5)  # also when every mean diverged (no point drawn)
+        a.xaxis.set_major_locator(FixedLocator(sorted(set(n_all))))     # the dataset sizes run
+        a.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
+        a.xaxis.set_minor_formatter(NullFormatter())
+        a.set_xlabel("n_traj (trajectories in the dataset)")
     ax.set_ylim(0, top * 1.05)
-    ax.set_xlabel("n_traj (trajectories in the dataset)")
-    ax.set_ylabel("mean cost on test instances")
-    ax.set_title(f"Fig. 1 — sample efficiency, {task}")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))   # beside the axes, never over the data
+    ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
+    ax.set_title(f"Fig. 1 — sample efficiency, {task}", fontsize=10)
+    ax2.set_ylim(-0.03, 1.03)
+    ax2.set_ylabel("share of policy rollouts reaching the goal")
+    ax2.set_title("policy success rate", fontsize=10)
+    ax2.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="upper left",
+               bbox_to_anchor=(1.02, 1.0))   # beside the axes, never over the data
+    fig.tight_layout()
     return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
 
 
@@ -203,13 +221,15 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     _log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
     ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
-    first = ax.legend(handles=c_handles, fontsize=7, loc="upper right")
-    ax.add_artist(first)
-    ax.legend(handles=m_handles, fontsize=7, loc="center right")   # the costs sit low on the axis
     ax2.set_ylim(-0.03, 1.03)
     ax2.set_ylabel("share of policy rollouts reaching the goal")
     ax2.set_title("policy success rate", fontsize=10)
-    ax2.legend(handles=m_handles, fontsize=7)
+    # beside the axes, never over the data: methods (colour, marker), then curves (line style)
+    first = ax2.legend(handles=m_handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="method",
+                       title_fontsize=7)
+    ax2.add_artist(first)
+    ax2.legend(handles=c_handles, fontsize=7, loc="lower left", bbox_to_anchor=(1.02, 0.0), title="cost curve",
+               title_fontsize=7)
     fig.tight_layout()
     return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
 
