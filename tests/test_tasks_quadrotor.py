@@ -340,3 +340,10 @@ def test_violations_are_told_apart_by_group_in_the_task_and_the_evaluation():
     assert group_violation_rates(ev, {}) == pytest.approx(want)
     older = {"X": Xs, "U": Us, "xi": xis}                                      # a rollout without the group arrays
     assert group_violation_rates(older, {"task": "quadrotor-1"}) == pytest.approx(want)
+    # the trajectory figure's words for each rollout and for the whole set
+    from sdp_cli.report.traj import _outcome, _shares
+
+    ev["reached"] = np.array([False, False, True])
+    assert [_outcome(task, {**ev, **older}, j) for j in range(3)] == [
+        "miss, breaks obstacles", "miss, breaks floor_ceiling", "goal, breaks controls"]
+    assert _shares(ev, {}) == "goal 33%, breaks controls 33%, breaks floor_ceiling 33%, breaks obstacles 33%"

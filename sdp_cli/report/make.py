@@ -28,7 +28,8 @@ import pandas as pd
 from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
 from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
-                                    table2c, timing, trajectories)
+                                    table2c, timing)
+from sdp_cli.report.traj import trajectories
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 
 def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:

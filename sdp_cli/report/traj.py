@@ -1,0 +1,108 @@
+"""The report's trajectory figure, ``traj_<task>``: TO alone vs each method's policy and refined solution
+on the first few test instances, each panel titled with every rollout's outcome (goal or miss, the
+constraint groups it breaks) and the figure with the shares over all test instances."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import load_npz
+from sdp_cli.report.figures import COLORS, _loop_t_a, _named, _plt, _save_fig
+
+
+def _best_rollout(d: pd.DataFrame):
+    """(rollout path, refine path, run) of the best evaluated row of ``d`` whose manifest names
+    both files."""
+    d = d.sort_values(["success_rate", "policy_cost_median"], ascending=[False, True])
+    for row in d.itertuples():
+        ro, rf = _named(row.rollouts), _named(row.refined)
+        if ro is not None and rf is not None:
+            return ro, rf, f"{row.run}, iteration {row.iteration}"
+    return None
+
+
+def _outcome(task, r: dict, j: int) -> str:
+    """Rollout ``j``'s outcome in a few words: "goal" / "miss", then the constraint groups it breaks
+    (beyond the evaluation's tolerance), e.g. "miss, breaks obstacles"."""
+    from sdp_cli.evaluate import VIOLATION_TOL
+
+    viol = task.violations_per_instance(r["X"][j:j + 1], r["U"][j:j + 1], r["xi"][j:j + 1])
+    broken = [g for g, v in viol.items() if not v[0] <= VIOLATION_TOL]
+    return ("goal" if r["reached"][j] else "miss") + (f", breaks {'+'.join(broken)}" if broken else "")
+
+
+def _shares(r: dict, meta: dict) -> str:
+    """Over all test instances: the share reaching the goal, and breaking each constraint group that any breaks."""
+    from sdp_cli.evaluate import group_violation_rates
+
+    rates = {k[:-len("_violation_rate")]: v for k, v in group_violation_rates(r, meta).items() if v > 0}
+    return f"goal {np.mean(r['reached']):.0%}" + "".join(f", breaks {g} {v:.0%}" for g, v in rates.items())
+
+
+def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
+    """TO alone vs each method's policy and refined solution on a few test instances (the best
+    run of each method at the last iteration; the test instances are the same for all).
+
+    Pendulums: the tip in the y-z plane; UR5 and quadrotor seen from above (x-y) with the
+    columns; start (blue dot) and goal (red star) of each instance. TO alone and refined come
+    from the refine artifact's ``inst_base_X`` / ``inst_pol_X``.
+    """
+    from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
+    from sdp_cli.tasks import get_task
+
+    d = _loop_t_a(df[df.task == task_name])
+    d = d[d.iteration == d.iteration.max()]
+    found = {m: _best_rollout(g) for m, g in d.groupby("method")}
+    found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}
+    if not found:
+        return []
+    runs = {}
+    for m, (ro, rf, name) in sorted(found.items()):
+        r, rmeta = load_npz(ro, kind="rollout")
+        f, _ = load_npz(rf, kind="dataset")
+        runs[m] = (r, f, rmeta, name)
+    r0, f0, meta0, _ = next(iter(runs.values()))
+    task = get_task(task_name, **(meta0.get("task_options") or {}))
+    top = task.nq > 2
+    ix, iy = (0, 1) if top else (1, 2)
+    plt = _plt()
+    n_show = min(n_show, len(r0["X"]))
+    fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), 3.6), squeeze=False)
+    for j, ax in enumerate(axes[0]):
+        xi = r0["xi"][j]
+        if top:
+            _draw_columns_top(ax, task)
+
+        def draw(X, label, **kw):
+            if np.all(np.isfinite(X)):
+                P = trajectory_points(task, X)
+                ax.plot(P[:, ix], P[:, iy], label=label, **kw)
+        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7)
+        for m, (r, f, _, _) in runs.items():
+            draw(r["X"][j], f"{m.upper()} policy", color=COLORS.get(m, "tab:orange"), lw=1.4)
+            draw(f["inst_pol_X"][j], f"refined from {m.upper()}", color=COLORS.get(m, "tab:orange"), lw=1.0,
+                 ls="--")
+        P0 = trajectory_points(task, task.initial_state(xi)[None])
+        ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
+        g = goal_point(task, xi)
+        if g is not None:
+            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
+        ax.set_title(f"test instance {j}\n" + "; ".join(f"{m.upper()}: {_outcome(task, r, j)}" for m, (r, *_) in runs.items()),
+                     fontsize=8)
+        ax.set_xlabel("x (m)" if top else "y (m)")
+        ax.set_ylabel("y (m)" if top else "z (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
+    what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
+    its = "; ".join(f"{m.upper()}: {v[3]}" for m, v in runs.items())
+    shares = "; ".join(f"{m.upper()}: {_shares(r, rmeta)}" for m, (r, _, rmeta, _) in runs.items())
+    fig.suptitle(f"{task_name}: TO alone vs policy vs refined ({what}; {its})\n"
+                 f"{'instance 0' if n_show == 1 else f'instances 0-{n_show - 1}'} of {len(r0['X'])} drawn (the first, "
+                 f"not chosen); over all {len(r0['X'])}: "
+                 f"{shares}", fontsize=9)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    return [_save_fig(fig, out / f"traj_{task_name}.png")]
