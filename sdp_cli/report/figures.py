@@ -47,6 +47,12 @@ MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
 CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
 
 
+def method_order(method: str) -> tuple[str, int]:
+    """Sort key of a method or variant, K numerically: ``sdp-K2`` before ``sdp-K10``."""
+    base, _, k = str(method).partition("-K")
+    return base, int(k) if k.isdigit() else -1
+
+
 def _log_ticks(axis, lo: float, hi: float) -> None:
     """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... (finer over about a decade) as plain
     numbers, no minor labels."""
@@ -118,7 +124,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
     top = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0) * 1.3
-    curves = list(tab.groupby(["method", "epochs"]))
+    curves = sorted(tab.groupby(["method", "epochs"]), key=lambda c: (method_order(c[0][0]), c[0][1]))
     for i, ((method, epochs), g) in enumerate(curves):
         ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
         shift = 1.07 ** (i - (len(curves) - 1) / 2)       # multiplicative: the n_traj axis is log
@@ -186,7 +192,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else np.nan
     lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / 1.5
     top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
-    methods = sorted(tab.method.unique())
+    methods = sorted(tab.method.unique(), key=method_order)
     for (method, curve), g in tab.groupby(["method", "curve"]):
         g = g.sort_values("iteration")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
