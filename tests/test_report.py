@@ -131,3 +131,42 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
     assert got.loc[0, "controls_violation_rate"] == 0.5 and np.isnan(got.loc[1, "controls_violation_rate"])
     new = old.assign(controls_violation_rate=[0.25, 0.0])
     pd.testing.assert_frame_equal(_backfill_older_rows(new), new)   # rows of this code are kept as they are
+
+
+def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
+    """Fig. 3 runs one loop per (T_h, T_a) and method: the figures must not average them together. Each run
+    becomes the variant ``<method>-h<T_h>-ta<T_a>`` (T_a the loop's, evaluated at its first iteration),
+    while Fig. 2's T_a sweep at the last iteration of one loop stays one method; each run keeps its rows."""
+    import matplotlib.colors as mc
+    import numpy as np
+    import pandas as pd
+
+    from sdp_cli.report.figures import COLORS, MARKERS, _loop_t_a, method_order
+    from sdp_cli.report.make import method_variants
+
+    rows = []
+    for (h, t_a), its in (((32, 16), (0, 1)), ((64, 63), (0,))):  # Fig. 3: two loops of SDP, seed 0, one unfinished
+        for it in its:
+            rows.append({"task": "ur5-rinit", "method": "sdp", "horizon": h, "t_a": t_a, "train_seed": 0,
+                         "iteration": it, "run": f"ur5-rinit-sdp-n50-s0-h{h}-ta{t_a}"})
+    for it, t_as in ((0, [4]), (1, [4, 1, 9, 15])):          # Fig. 2: one loop, T_a sweep at the last iteration
+        rows += [{"task": "double_pendulum", "method": "sdp", "horizon": 16, "t_a": t, "train_seed": 0,
+                  "iteration": it, "run": "double_pendulum-sdp-n30-s0"} for t in t_as]
+    df = pd.DataFrame(rows)
+    v = method_variants(df)
+    assert sorted(set(v[v.task == "ur5-rinit"].method)) == ["sdp-h32-ta16", "sdp-h64-ta63"]
+    assert set(v[v.task == "double_pendulum"].method) == {"sdp"}
+    assert set(df.method) == {"sdp"}                          # the input (all_runs.csv) keeps the plain method
+    # both loops keep their rows (grouped per run; per method and seed, the unfinished loop's T_a 63 is
+    # missing at iteration 1, so its rows were dropped)
+    kept = _loop_t_a(df[df.task == "ur5-rinit"])
+    assert sorted(kept.t_a) == [16, 16, 63]
+    assert list(_loop_t_a(df[df.task == "double_pendulum"]).t_a) == [4, 4]
+    # one hue per method, five distinct shades for Fig. 3's five pairs, the method's marker
+    pairs = [(32, 16), (32, 31), (64, 16), (64, 31), (64, 63)]
+    shades = [mc.to_rgb(COLORS.get(f"sdp-h{h}-ta{t}")) for h, t in pairs]
+    assert len(set(shades)) == 5 and MARKERS.get("dp-h64-ta63") == "s"
+    red = np.array(mc.to_rgb("tab:red"))
+    assert all(np.argmax(s) == np.argmax(red) for s in shades)
+    assert sorted([f"sdp-h{h}-ta{t}" for h, t in reversed(pairs)], key=method_order) == [
+        f"sdp-h{h}-ta{t}" for h, t in pairs]

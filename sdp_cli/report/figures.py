@@ -6,6 +6,7 @@ Artifacts are opened only through the paths the evaluation manifests name (``rol
 from __future__ import annotations
 
 import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,25 +17,30 @@ from sdp_cli.report.runs import mean_ci
 
 DIVERGED = 1e5
 class _Shades(dict):
-    """Method -> colour (or marker); a variant ``<method>-K<k>`` (:func:`sdp_cli.report.make.method_variants`)
-    gets its method's: colours darker for K < 5 and lighter for K > 5, so that the K ablation's
-    curves stay apart and each legend entry matches its curve."""
+    """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
+    (:func:`sdp_cli.report.make.method_variants`) gets its method's: colours darker for K < 5 and lighter
+    for K > 5, darker for short (T_h + T_a) and lighter for long ones, so that the variants' curves stay
+    apart and each legend entry matches its curve."""
 
     def get(self, key, default=None):
         if key in self:
             return self[key]
-        base, _, k = str(key).partition("-K")
-        if base not in self or not k.isdigit():
+        base, _, variant = str(key).partition("-")
+        k, hta = re.fullmatch(r"K(\d+)", variant), re.fullmatch(r"h(\d+)-ta(\d+)", variant)
+        if base not in self or not (k or hta):
             return default
         value = self[base]
         if not self.shade:
             return value
         import matplotlib.colors as mc
 
-        rgb, k = mc.to_rgb(value), int(k)
-        if k < 5:
-            return tuple(c * (1 - 0.7 * (5 - k) / 5) for c in rgb)
-        mix = min(0.7, (k - 5) / 10)
+        if k:    # darker for K < 5, lighter for K > 5
+            mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
+        else:    # (T_h, T_a) of Fig. 3: darker for short ones, lighter for long ones
+            mix = float(np.clip((int(hta[1]) + int(hta[2]) - 85) / 75, -0.6, 0.6))
+        rgb = mc.to_rgb(value)
+        if mix < 0:
+            return tuple(c * (1 + mix) for c in rgb)
         return tuple(c + (1 - c) * mix for c in rgb)
 
     def __init__(self, values: dict, shade: bool):
@@ -47,10 +53,11 @@ MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
 CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
 
 
-def method_order(method: str) -> tuple[str, int]:
-    """Sort key of a method or variant, K numerically: ``sdp-K2`` before ``sdp-K10``."""
-    base, _, k = str(method).partition("-K")
-    return base, int(k) if k.isdigit() else -1
+def method_order(method: str) -> tuple:
+    """Sort key of a method or variant, numbers numerically: ``sdp-K2`` before ``sdp-K10``, ``sdp-h32-ta16``
+    before ``sdp-h64-ta16`` before ``sdp-h64-ta63``."""
+    base, _, variant = str(method).partition("-")
+    return base, tuple(int(n) for n in re.findall(r"\d+", variant))
 
 
 def _log_ticks(axis, lo: float, hi: float) -> None:
@@ -163,7 +170,8 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
 def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
     """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
     keep = []  # (load_runs gives every row an integer iteration)
-    for _, g in d.groupby(["method", "train_seed"], dropna=False):
+    by = ["run"] if "run" in d else ["method", "train_seed"]   # (Fig. 3: one run per (T_h, T_a) and seed)
+    for _, g in d.groupby(by, dropna=False):
         common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
         keep.append(g[g.t_a.isin(common)])
     return pd.concat(keep) if keep else d

@@ -93,15 +93,24 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
 
 
 def method_variants(df: pd.DataFrame) -> pd.DataFrame:
-    """For the figures: where one task has runs of a method with several diffusion step counts (the
-    K ablation), the method becomes ``<method>-K<k>`` so that the variants are drawn and tabulated
-    apart instead of averaged together (all_runs.csv keeps the plain method)."""
-    if "k_rollout" not in df or df.empty:
+    """For the figures: where one task has runs of a method that differ in how the policy acts, the
+    variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
+    method): several diffusion step counts (the K ablation) make ``<method>-K<k>``; several (T_h, T_a)
+    pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
+    ``<method>-h<T_h>-ta<T_a>``."""
+    if df.empty:
         return df
     df = df.copy()
-    ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
-    mixed = (ks > 1) & df.k_rollout.notna()
-    df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
+    if "k_rollout" in df:
+        ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
+        mixed = (ks > 1) & df.k_rollout.notna()
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
+    if {"horizon", "t_a", "run", "iteration"} <= set(df.columns):
+        first = df[df.iteration == df.groupby("run").iteration.transform("min")]
+        loop_t_a = df.run.map(first.groupby("run").t_a.min())
+        pair = df.horizon.astype("Int64").astype(str) + "-ta" + loop_t_a.astype("Int64").astype(str)
+        mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & loop_t_a.notna()
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
     return df
 
 
