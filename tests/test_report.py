@@ -141,7 +141,7 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     import numpy as np
     import pandas as pd
 
-    from sdp_cli.report.figures import COLORS, MARKERS, _loop_t_a, method_order
+    from sdp_cli.report.figures import COLORS, MARKERS, _loop_t_a, method_label, method_order
     from sdp_cli.report.make import method_variants
 
     rows = []
@@ -170,3 +170,8 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     assert all(np.argmax(s) == np.argmax(red) for s in shades)
     assert sorted([f"sdp-h{h}-ta{t}" for h, t in reversed(pairs)], key=method_order) == [
         f"sdp-h{h}-ta{t}" for h, t in pairs]
+    # within one figure the pairs drawn spread from dark to light, whatever their values
+    few = ["sdp-h8-ta4", "sdp-h16-ta8"]
+    dark, light = (np.array(mc.to_rgb(COLORS.get(m, among=few))) for m in few)
+    assert dark.sum() < red.sum() < light.sum()
+    assert method_label("sdp-h64-ta63") == "SDP (T_h 64, T_a 63)" and method_label("pddp_s-K2") == "PDDP_S-K2"

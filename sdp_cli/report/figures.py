@@ -16,18 +16,27 @@ from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
 from sdp_cli.report.runs import mean_ci
 
 DIVERGED = 1e5
+_HTA = re.compile(r"h(\d+)-ta(\d+)")
+
+
+def _pair(method: str) -> tuple[int, int] | None:
+    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
+    m = _HTA.fullmatch(str(method).partition("-")[2])
+    return (int(m[1]), int(m[2])) if m else None
+
+
 class _Shades(dict):
     """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
     (:func:`sdp_cli.report.make.method_variants`) gets its method's: colours darker for K < 5 and lighter
-    for K > 5, darker for short (T_h + T_a) and lighter for long ones, so that the variants' curves stay
-    apart and each legend entry matches its curve."""
+    for K > 5; (T_h, T_a) variants spread from dark to light in (T_h, T_a) order among the methods of the
+    same figure (``among``), so that the variants' curves stay apart and each legend entry matches its curve."""
 
-    def get(self, key, default=None):
+    def get(self, key, default=None, among=()):
         if key in self:
             return self[key]
         base, _, variant = str(key).partition("-")
-        k, hta = re.fullmatch(r"K(\d+)", variant), re.fullmatch(r"h(\d+)-ta(\d+)", variant)
-        if base not in self or not (k or hta):
+        k, pair = re.fullmatch(r"K(\d+)", variant), _pair(key)
+        if base not in self or not (k or pair):
             return default
         value = self[base]
         if not self.shade:
@@ -36,8 +45,10 @@ class _Shades(dict):
 
         if k:    # darker for K < 5, lighter for K > 5
             mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
-        else:    # (T_h, T_a) of Fig. 3: darker for short ones, lighter for long ones
-            mix = float(np.clip((int(hta[1]) + int(hta[2]) - 85) / 75, -0.6, 0.6))
+        else:
+            pairs = sorted({p for p in map(_pair, among) if p} | {pair})
+            mix = (-0.55 + 1.1 * pairs.index(pair) / (len(pairs) - 1) if len(pairs) > 1
+                   else float(np.clip(0.6 * np.log2(sum(pair) / 85), -0.6, 0.6)))
         rgb = mc.to_rgb(value)
         if mix < 0:
             return tuple(c * (1 + mix) for c in rgb)
@@ -46,6 +57,15 @@ class _Shades(dict):
     def __init__(self, values: dict, shade: bool):
         super().__init__(values)
         self.shade = shade
+
+
+def method_label(method: str) -> str:
+    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``."""
+    pair = _pair(method)
+    if pair:
+        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
+    base, sep, rest = str(method).partition("-")
+    return base.upper() + sep + rest
 
 
 COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)
@@ -91,8 +111,8 @@ def _save_fig(fig, path: Path) -> Path:
 
 def _save_csv(df: pd.DataFrame, path: Path) -> Path:
     """CSV; a ``ci95`` column reads "n/a" where there is no interval (one seed: see ``n_seeds``)."""
-    if "ci95" in df:
-        df = df.assign(ci95=[("n/a" if pd.isna(h) else h) for h in df["ci95"]])
+    for col in [c for c in df.columns if c.endswith("ci95")]:
+        df = df.assign(**{col: [("n/a" if pd.isna(h) else h) for h in df[col]]})
     return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
 
 
@@ -121,7 +141,8 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     if d.empty or d["n_traj"].isna().all():
         return []
     by = ["method", "epochs", "n_traj"]
-    tab = _agg(d, by, "policy_cost_mean").sort_values(by)
+    tab = _agg(d, by, "policy_cost_mean")
+    tab = tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), *tab[by[1:]].iloc[i]))]
     if "success_rate" in d:
         succ = _agg(d, by, "success_rate").rename(columns={"mean": "success_mean", "ci95": "success_ci95"})
         tab = tab.merge(succ.drop(columns="n_seeds"), on=by, how="left")
@@ -135,12 +156,12 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     for i, ((method, epochs), g) in enumerate(curves):
         ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
         shift = 1.07 ** (i - (len(curves) - 1) / 2)       # multiplicative: the n_traj axis is log
-        kw = dict(ls=ls, marker=MARKERS.get(method, "o"), color=COLORS.get(method), capsize=3,
-                  label=f"{method.upper()} ({epochs} ep.)")
+        kw = dict(ls=ls, marker=MARKERS.get(method, "o"), color=COLORS.get(method, among=tab.method), capsize=3,
+                  label=f"{method_label(method)} ({epochs} ep.)")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         ax.errorbar(g["n_traj"][ok] * shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0), **kw)
         for n in g["n_traj"][~ok]:
-            ax.annotate("∞", (n * shift, top), ha="center", va="top", fontsize=14, color=COLORS.get(method))
+            ax.annotate("∞", (n * shift, top), ha="center", va="top", fontsize=14, color=kw["color"])
         if "success_mean" in g:
             ax2.errorbar(g["n_traj"] * shift, g["success_mean"], yerr=g["success_ci95"].fillna(0), **kw)
     if np.isfinite(to[0]):
@@ -209,16 +230,19 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         shift = 0.06 * (methods.index(method) - (len(methods) - 1) / 2)
         a.errorbar(g["iteration"][ok] + shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0),
                    marker=MARKERS.get(method, "o"), capsize=3, ls=CURVE_STYLES.get(curve, "-"),
-                   color=COLORS.get(method), mfc="white" if curve == "ArgminCost" else COLORS.get(method))
+                   color=COLORS.get(method, among=methods),
+                   mfc="white" if curve == "ArgminCost" else COLORS.get(method, among=methods))
         if a is ax:  # one ∞ per method and iteration, side by side
             for it in g["iteration"][~ok]:
-                ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16, color=COLORS.get(method))
+                ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16,
+                            color=COLORS.get(method, among=methods))
     if np.isfinite(to):
         ax.axhline(to, color="black", ls="-.", lw=1)
     # legends from explicit handles: colour and marker = method, line style = curve
     from matplotlib.lines import Line2D
 
-    m_handles = [Line2D([], [], color=COLORS.get(m), marker=MARKERS.get(m, "o"), ls="-", label=m.upper())
+    m_handles = [Line2D([], [], color=COLORS.get(m, among=methods), marker=MARKERS.get(m, "o"), ls="-",
+                        label=method_label(m))
                  for m in methods]
     c_handles = [Line2D([], [], color="0.3", ls=CURVE_STYLES[c], lw=1.6,
                         label={"policy": "policy rollout", "refined": "refined (TO warm-started by the policy)",
@@ -290,9 +314,10 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         base = base[base.method == sorted(t.method.unique())[0]].iterations
         ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
                 label=f"TO alone (naive guess), mean {base.mean():.0f}")
-        for method, g in t[t.guess == "policy"].groupby("method"):
-            ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method),
-                    label=f"warm-started by {method.upper()} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
+        pol = t[t.guess == "policy"]
+        for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
+            ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method, among=pol.method),
+                    label=f"warm-started by {method_label(method)} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
         _log_ticks(ax.xaxis, lo_x, hi_x)
@@ -326,7 +351,8 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     d = d[d.epochs == d.epochs.max()]
     d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
     cols = [c for c in TABLE2C if c in d and d[c].notna().any()]
-    tab = d.groupby(["method", "t_a"])[cols].mean().reset_index().sort_values(["method", "t_a"])
+    tab = d.groupby(["method", "t_a"])[cols].mean().reset_index()
+    tab = tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), tab.t_a.iloc[i]))]
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
     return [_save_csv(tab, out / f"table2c_{task}.csv"),
             _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration)")]

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.figures import COLORS, _loop_t_a, _named, _plt, _save_fig
+from sdp_cli.report.figures import COLORS, _loop_t_a, _named, _plt, _save_fig, method_label, method_order
 
 
 def _best_rollout(d: pd.DataFrame):
@@ -60,7 +60,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     if not found:
         return []
     runs = {}
-    for m, (ro, rf, name) in sorted(found.items()):
+    for m, (ro, rf, name) in sorted(found.items(), key=lambda x: method_order(x[0])):
         r, rmeta = load_npz(ro, kind="rollout")
         f, _ = load_npz(rf, kind="dataset")
         runs[m] = (r, f, rmeta, name)
@@ -70,7 +70,10 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     ix, iy = (0, 1) if top else (1, 2)
     plt = _plt()
     n_show = min(n_show, len(r0["X"]))
-    fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), 3.6), squeeze=False)
+    n_lines = len(runs) + 1                      # each panel's and the figure's title: one line per method
+    n_leg = -(-(2 * len(runs) + 3) // 6)         # legend rows (6 columns)
+    height = 3.0 + 2 * 0.16 * n_lines + 0.22 * n_leg
+    fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), height), squeeze=False)
     for j, ax in enumerate(axes[0]):
         xi = r0["xi"][j]
         if top:
@@ -82,27 +85,26 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
                 ax.plot(P[:, ix], P[:, iy], label=label, **kw)
         draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7)
         for m, (r, f, _, _) in runs.items():
-            draw(r["X"][j], f"{m.upper()} policy", color=COLORS.get(m, "tab:orange"), lw=1.4)
-            draw(f["inst_pol_X"][j], f"refined from {m.upper()}", color=COLORS.get(m, "tab:orange"), lw=1.0,
-                 ls="--")
+            draw(r["X"][j], f"{method_label(m)} policy", color=COLORS.get(m, "tab:orange", among=runs), lw=1.4)
+            draw(f["inst_pol_X"][j], f"refined from {method_label(m)}", color=COLORS.get(m, "tab:orange", among=runs),
+                 lw=1.0, ls="--")
         P0 = trajectory_points(task, task.initial_state(xi)[None])
         ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
         g = goal_point(task, xi)
         if g is not None:
             ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
-        ax.set_title(f"test instance {j}\n" + "; ".join(f"{m.upper()}: {_outcome(task, r, j)}" for m, (r, *_) in runs.items()),
-                     fontsize=8)
+        ax.set_title("\n".join([f"test instance {j}"] + [f"{method_label(m)}: {_outcome(task, r, j)}"
+                                                          for m, (r, *_) in runs.items()]), fontsize=8)
         ax.set_xlabel("x (m)" if top else "y (m)")
         ax.set_ylabel("y (m)" if top else "z (m)")
         ax.set_aspect("equal", adjustable="datalim")
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
     what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
-    its = "; ".join(f"{m.upper()}: {v[3]}" for m, v in runs.items())
-    shares = "; ".join(f"{m.upper()}: {_shares(r, rmeta)}" for m, (r, _, rmeta, _) in runs.items())
-    fig.suptitle(f"{task_name}: TO alone vs policy vs refined ({what}; {its})\n"
-                 f"{'instance 0' if n_show == 1 else f'instances 0-{n_show - 1}'} of {len(r0['X'])} drawn (the first, "
-                 f"not chosen); over all {len(r0['X'])}: "
-                 f"{shares}", fontsize=9)
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    n = len(r0["X"])
+    drawn = "instance 0" if n_show == 1 else f"instances 0-{n_show - 1}"
+    fig.suptitle("\n".join([f"{task_name}: TO alone vs policy vs refined ({what}); {drawn} of {n} drawn (the first, "
+                            f"not chosen)"] + [f"{method_label(m)} ({name}): over all {n}, {_shares(r, rmeta)}"
+                                               for m, (r, _, rmeta, name) in runs.items()]), fontsize=9)
+    fig.tight_layout(rect=(0, (0.22 * n_leg + 0.1) / height, 1, 1))
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
