@@ -104,7 +104,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     n = len(r0["X"])
     drawn = "instance 0" if n_show == 1 else f"instances 0-{n_show - 1}"
     fig.suptitle("\n".join([f"{task_name}: TO alone vs policy vs refined ({what}); {drawn} of {n} drawn (the first, "
-                            f"not chosen)"] + [f"{method_label(m)} ({name}): over all {n}, {_shares(r, rmeta)}"
+                            f"not chosen)"] + [f"{method_label(m)} (its best run by success, {name}): over all {n}, {_shares(r, rmeta)}"
                                                for m, (r, _, rmeta, name) in runs.items()]), fontsize=9)
     fig.tight_layout(rect=(0, (0.22 * n_leg + 0.1) / height, 1, 1))
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
