@@ -3,13 +3,16 @@
 Per task found under ``--runs`` (file names carry the task):
 
 - ``fig1_<task>``: mean policy cost vs n_traj per method and epoch count (iteration 0),
-  mean and 95% CI over seeds, TO-alone line, an infinity marker when the mean exceeds 1e5;
+  mean and 95% CI over seeds, TO-alone line, an infinity marker when the mean exceeds 1e5, and
+  the policy success rate beside it;
 - ``fig2a_<task>``: mean cost per algorithm iteration, policy and refined, per method;
 - ``fig2b_<task>``: histogram of TO iterations with (policy warm start) and without (naive);
 - ``table2c_<task>``: the T_a trade-off (policy cost, refined cost, TO iterations, rollout,
   solving and total time, TO-alone columns) at the last iteration, CSV and markdown;
-- ``traj_<task>``: trajectories of a few test instances, TO alone vs policy vs refined;
+- ``traj_<task>``: trajectories of the first test instances, TO alone vs policy vs refined, each
+  rollout's outcome (:mod:`sdp_cli.report.traj`);
 - ``timing_<task>``: where the time goes (collection, training, evaluation), per iteration;
+- variants of a method (K, or (T_h, T_a)) are drawn apart (:func:`method_variants`);
 - ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets; a
   hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
 
