@@ -169,6 +169,11 @@ def test_quadrotor_rules_per_layout():
     assert "constraint violated SDP 0% vs DP 30% (an obstacle: SDP 0% vs DP 25%)" in r.ours
     assert "quadrotor-0: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%, final" in r.ours
     assert quadrotor_precision({"fig4": fig4(dp_violates=0.3, layouts=("quadrotor-0",))}).verdict == "partly"
+    d = fig4(dp_violates=0.3)
+    d = d[~((d.task == "quadrotor-3") & (d.method == "sdp"))]                        # SDP not run there yet
+    r = quadrotor_precision({"fig4": d})
+    assert "quadrotor-3: success DP 20%, constraint violated DP 30%, final distance DP 0.4 m; SDP not run yet" in r.ours
+    assert r.verdict == "partly" and "layouts without both SDP and DP yet: quadrotor-3" in r.detail
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
     assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
     assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"

@@ -207,28 +207,33 @@ def quadrotor_precision(res) -> Row:
     that break a constraint (obstacles, floor, ceiling; and an obstacle alone where the rows have
     ``obstacles_violation_rate``), SDP vs DP, at the last iteration."""
     last = _last(res["fig4"])
-    parts, ok, tasks = [], [], sorted(t for t in last.task.unique() if str(t).startswith("quadrotor"))
-    for task in tasks:
+    parts, ok, both = [], [], set()
+    for task in sorted(t for t in last.task.unique() if str(t).startswith("quadrotor")):
         g = last[last.task == task]
-        by = {m: g[g.method == m] for m in ("sdp", "dp")}
-        if any(x.empty for x in by.values()):
-            parts.append(f"{task}: SDP or DP missing")
+        by = {m: g[g.method == m] for m in ("sdp", "dp") if (g.method == m).any()}
+        if not by:
             continue
         s = {m: _per_seed(x, "success_rate").mean() for m, x in by.items()}
         v = {m: _per_seed(x, "violation_rate").mean() for m, x in by.items()}
         dist = {m: x.goal_distance_median.median() for m, x in by.items()}
-        ok.append(s["sdp"] >= SOLVED and s["sdp"] > s["dp"] and (task == "quadrotor-0" or v["dp"] >= v["sdp"]))
-        hit = ""
-        if "obstacles_violation_rate" in g and g.obstacles_violation_rate.notna().any():
-            o = {m: _per_seed(x, "obstacles_violation_rate").mean() for m, x in by.items()}
-            hit = f" (an obstacle: SDP {100 * o['sdp']:.0f}% vs DP {100 * o['dp']:.0f}%)"
-        parts.append(f"{task}: success SDP {100 * s['sdp']:.0f}% vs DP {100 * s['dp']:.0f}%, constraint violated "
-                     f"SDP {100 * v['sdp']:.0f}% vs DP {100 * v['dp']:.0f}%{hit}, final distance SDP {dist['sdp']:.2g} m "
-                     f"vs DP {dist['dp']:.2g} m")
-    full = {"quadrotor-0", "quadrotor-1", "quadrotor-3"} <= set(tasks)
+        o = ({m: _per_seed(x, "obstacles_violation_rate").mean() for m, x in by.items()}
+             if "obstacles_violation_rate" in g and g.obstacles_violation_rate.notna().any() else None)
+
+        def vs(d, fmt):   # "SDP x vs DP y", or one method's value where the other was not run
+            return " vs ".join(f"{m.upper()} {fmt(d[m])}" for m in ("sdp", "dp") if m in d)
+        pct = lambda x: f"{100 * x:.0f}%"  # noqa: E731
+        hit = f" (an obstacle: {vs(o, pct)})" if o else ""
+        missing = "".join(f"; {m.upper()} not run yet" for m in ("sdp", "dp") if m not in by)
+        parts.append(f"{task}: success {vs(s, pct)}, constraint violated {vs(v, pct)}{hit}, final distance "
+                     f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")
+        if not missing:
+            both.add(task)
+            ok.append(s["sdp"] >= SOLVED and s["sdp"] > s["dp"] and (task == "quadrotor-0" or v["dp"] >= v["sdp"]))
+    layouts = {"quadrotor-0", "quadrotor-1", "quadrotor-3"}
+    full = layouts <= both
     verdict = ("reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced")
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        "" if full else "layouts not run yet: " + ", ".join(sorted({"quadrotor-0", "quadrotor-1", "quadrotor-3"} - set(tasks))),
+        "" if full else "layouts without both SDP and DP yet: " + ", ".join(sorted(layouts - both)),
         _unfinished(res["fig4"]), "rule: SDP solves (>= 50%), beats DP, and violates constraints no more often") if x))
 
 
