@@ -175,3 +175,33 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     dark, light = (np.array(mc.to_rgb(COLORS.get(m, among=few))) for m in few)
     assert dark.sum() < red.sum() < light.sum()
     assert method_label("sdp-h64-ta63") == "SDP (T_h 64, T_a 63)" and method_label("pddp_s-K2") == "PDDP_S-K2"
+
+
+def test_loop_figures_use_one_budget_per_method():
+    """fig2a/fig2b/table2c/traj/loop average over seeds: on Fig. 1's sweeps they take, per task and method, the runs
+    with the most epochs and the largest dataset (else one point would average 2 x 2 budgets and call them seeds);
+    a loop whose n_traj grows over its iterations (Fig. 3's schedule) keeps every iteration."""
+    import pandas as pd
+
+    from sdp_cli.report.figures import budget_title
+    from sdp_cli.report.make import largest_budget
+
+    rows = []
+    for method, epochs_all in (("pddp", (1000, 2000)), ("pddp_s", (1000, 2000, 3000))):   # Fig. 1a: PDDP+S has 3e3
+        for epochs in epochs_all:
+            for n in (2, 16):
+                for seed in (0, 1):
+                    rows.append({"task": "ur5-fixed", "method": method, "epochs": epochs, "n_traj": n, "train_seed": seed,
+                                 "iteration": 0, "run": f"ur5-fixed-{method}-n{n}-s{seed}-e{epochs}"})
+    for it, n in enumerate((50, 50, 100)):                                                # Fig. 3: a schedule
+        rows.append({"task": "ur5-rinit", "method": "sdp", "epochs": 10000, "n_traj": n, "train_seed": 0,
+                     "iteration": it, "run": "ur5-rinit-sdp-n50-s0"})
+    df = pd.DataFrame(rows)
+    kept = largest_budget(df)
+    u = kept[kept.task == "ur5-fixed"]
+    assert set(zip(u.method, u.epochs, u.n_traj)) == {("pddp", 2000, 16), ("pddp_s", 3000, 16)}
+    assert len(u) == 4                                                # both seeds of each
+    assert list(kept[kept.task == "ur5-rinit"].n_traj) == [50, 50, 100]
+    assert budget_title(u) == ", largest budget per method"
+    assert budget_title(u[u.method == "pddp"]) == ", n_traj 16, 2000 epochs"
+    assert budget_title(kept[kept.task == "ur5-rinit"]) == ", n_traj 50, 10000 epochs"

@@ -188,6 +188,18 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
 
 
+def budget_title(d: pd.DataFrame) -> str:
+    """``", n_traj 30, 2000 epochs"`` when the rows share one budget (n_traj at their first iteration), else
+    ``", largest budget per method"`` (:func:`sdp_cli.report.make.largest_budget`); empty without those columns."""
+    if d.empty or not {"epochs", "n_traj", "iteration"} <= set(d.columns):
+        return ""
+    first = d[d.iteration == d.iteration.min()]
+    n, e = first.n_traj.dropna().unique(), first.epochs.dropna().unique()
+    if len(n) == 1 and len(e) == 1:
+        return f", n_traj {n[0]:g}, {e[0]:g} epochs"
+    return ", largest budget per method"
+
+
 def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
     """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
     keep = []  # (load_runs gives every row an integer iteration)
@@ -258,7 +270,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax.set_ylim(lo, top * 1.2)
     _log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
-    ax.set_title(f"Fig. 2a — alternating loop, {task}", fontsize=10)
+    ax.set_title(f"Fig. 2a — alternating loop, {task}{budget_title(d)}", fontsize=10)
     ax2.set_ylim(-0.03, 1.03)
     ax2.set_ylabel("share of policy rollouts reaching the goal")
     ax2.set_title("policy success rate", fontsize=10)
@@ -325,7 +337,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         ax.set_ylabel("instances")
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
-    fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as})", fontsize=10)
+    fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as}"
+                 f"{budget_title(d)})", fontsize=10)
     return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
 
 
@@ -355,7 +368,7 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     tab = tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), tab.t_a.iloc[i]))]
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
     return [_save_csv(tab, out / f"table2c_{task}.csv"),
-            _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration)")]
+            _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]
 
 
 def timing(df: pd.DataFrame, task: str, out: Path) -> list[Path]:

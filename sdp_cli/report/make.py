@@ -12,7 +12,8 @@ Per task found under ``--runs`` (file names carry the task):
 - ``traj_<task>``: trajectories of the first test instances, TO alone vs policy vs refined, each
   rollout's outcome (:mod:`sdp_cli.report.traj`);
 - ``timing_<task>``: where the time goes (collection, training, evaluation), per iteration;
-- variants of a method (K, or (T_h, T_a)) are drawn apart (:func:`method_variants`);
+- variants of a method (K, or (T_h, T_a)) are drawn apart (:func:`method_variants`); all but
+  ``fig1`` and ``timing`` show, per method, the runs of the largest budget (:func:`largest_budget`);
 - ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets; a
   hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
 
@@ -78,10 +79,13 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     for task in sorted(df.task.dropna().unique()):
         written += ablation_k(df, task, out)
     fdf = method_variants(df)
+    bdf = largest_budget(fdf)
     for task in sorted(fdf.task.dropna().unique()):
-        for fn in (fig1, fig2a, fig2b, table2c, trajectories, timing):
+        for fn in (fig1, timing):                            # every dataset size and epoch count
             written += fn(fdf, task, out)
-        written += loop_costs(fdf, task, out, _loop_t_a(fdf[fdf.task == task]))
+        for fn in (fig2a, fig2b, table2c, trajectories):     # one budget per method
+            written += fn(bdf, task, out)
+        written += loop_costs(bdf, task, out, _loop_t_a(bdf[bdf.task == task]))
     written += training_curves(df, out)
     if metrics is not None:
         from sdp_cli.report.curves import metrics_summary, write_metrics
@@ -115,6 +119,22 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & loop_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
     return df
+
+
+def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
+    """The rows behind ``fig2a``, ``fig2b``, ``table2c``, ``traj`` and ``loop/``: per task and method, the runs
+    with the most epochs and, among them, the largest first dataset (n_traj at the run's first iteration).
+    Fig. 1's sweeps would otherwise be averaged into one point per iteration whose "seeds" are runs of
+    different budgets; the loops of one budget (Fig. 2-4) keep every run. ``fig1`` shows all budgets."""
+    if df.empty or not {"run", "iteration", "epochs", "n_traj"} <= set(df.columns):
+        return df
+    first = df[df.iteration == df.groupby("run").iteration.transform("min")].groupby("run")[["epochs", "n_traj"]].max()
+    by = [df.task, df.method]
+    epochs, n_traj = df.run.map(first.epochs), df.run.map(first.n_traj)
+    keep = (epochs == epochs.groupby(by).transform("max")) | epochs.isna()
+    n_kept = n_traj.where(keep)
+    keep &= (n_kept == n_kept.groupby(by).transform("max")) | n_traj.isna()
+    return df[keep]
 
 
 #: the files ``sdp report`` writes into its output folder (hand-written ones such as NOTES.md are kept)
