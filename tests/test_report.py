@@ -188,11 +188,11 @@ def test_loop_figures_use_one_budget_per_method():
 
     rows = []
     for method, epochs_all in (("pddp", (1000, 2000)), ("pddp_s", (1000, 2000, 3000))):   # Fig. 1a: PDDP+S has 3e3
-        for epochs in epochs_all:
+        for epochs in epochs_all:      # one run per size and seed, evaluated at each epoch count (a row per count)
             for n in (2, 16):
                 for seed in (0, 1):
                     rows.append({"task": "ur5-fixed", "method": method, "epochs": epochs, "n_traj": n, "train_seed": seed,
-                                 "iteration": 0, "run": f"ur5-fixed-{method}-n{n}-s{seed}-e{epochs}"})
+                                 "iteration": 0, "run": f"ur5-fixed-{method}-n{n}-s{seed}"})
     for it, n in enumerate((50, 50, 100)):                                                # Fig. 3: a schedule
         rows.append({"task": "ur5-rinit", "method": "sdp", "epochs": 10000, "n_traj": n, "train_seed": 0,
                      "iteration": it, "run": "ur5-rinit-sdp-n50-s0"})

@@ -361,7 +361,7 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     if d.empty or "refined_solve_time_mean" not in d:
         return []
     d = d[d.iteration == d.iteration.max()]
-    d = d[d.epochs == d.epochs.max()]
+    d = d[d.epochs == d.groupby("method").epochs.transform("max")]     # per method (PDDP+S alone has 3e3 on UR5)
     d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
     cols = [c for c in TABLE2C if c in d and d[c].notna().any()]
     tab = d.groupby(["method", "t_a"])[cols].mean().reset_index()

@@ -122,18 +122,18 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
-    """The rows behind ``fig2a``, ``fig2b``, ``table2c``, ``traj`` and ``loop/``: per task and method, the runs
-    with the most epochs and, among them, the largest first dataset (n_traj at the run's first iteration).
-    Fig. 1's sweeps would otherwise be averaged into one point per iteration whose "seeds" are runs of
-    different budgets; the loops of one budget (Fig. 2-4) keep every run. ``fig1`` shows all budgets."""
+    """The rows behind ``fig2a``, ``fig2b``, ``table2c``, ``traj`` and ``loop/``: per task and method, the rows
+    at the most epochs (a run evaluated at several epoch counts has a row per count) of the runs with the
+    largest first dataset (n_traj at the run's first iteration). Fig. 1's sweeps would otherwise be averaged
+    into one point per iteration whose "seeds" are runs of different budgets; the loops of one budget (Fig. 2-4)
+    keep every row. ``fig1`` shows all budgets."""
     if df.empty or not {"run", "iteration", "epochs", "n_traj"} <= set(df.columns):
         return df
-    first = df[df.iteration == df.groupby("run").iteration.transform("min")].groupby("run")[["epochs", "n_traj"]].max()
     by = [df.task, df.method]
-    epochs, n_traj = df.run.map(first.epochs), df.run.map(first.n_traj)
-    keep = (epochs == epochs.groupby(by).transform("max")) | epochs.isna()
-    n_kept = n_traj.where(keep)
-    keep &= (n_kept == n_kept.groupby(by).transform("max")) | n_traj.isna()
+    keep = (df.epochs == df.epochs.groupby(by).transform("max")) | df.epochs.isna()
+    first = df[df.iteration == df.groupby("run").iteration.transform("min")].groupby("run").n_traj.max()
+    n_traj = df.run.map(first).where(keep)
+    keep &= (n_traj == n_traj.groupby(by).transform("max")) | df.run.map(first).isna()
     return df[keep]
 
 
