@@ -251,6 +251,15 @@ def test_fig3_claim_per_horizon_and_action_length():
     d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
     r = ur5_long_actions({"fig3": d})
     assert r.verdict == "partly" and "ur5-rinit-sdp-h64-ta63" in r.detail
+    # claim 13: one speed-up per loop, not pooled over Fig. 3's (T_h, T_a) loops of a task
+    d = pd.DataFrame(rows).assign(to_alone_solve_time_mean=1.0)
+    d["refined_solve_time_mean"] = np.where(d.t_a == 16, 0.1, 2.0)         # 10x from one loop, 0.5x from the others
+    r = speedup({"fig3": d})
+    assert "fig3 ur5-rinit (T_h 32, T_a 16) multiple shooting: 10x" in r.ours
+    assert "fig3 ur5-rinit (T_h 64, T_a 63) multiple shooting: 0.5x" in r.ours and r.verdict == "partly"
+    # rows evaluated before T_h was recorded belong to their task's one loop
+    d = _fig2_rows(dp_success=0.1).assign(horizon=lambda x: np.where(x.train_seed == 0, 16.0, np.nan))
+    assert "fig2 double_pendulum multiple shooting: 3x ± 0x (2 seeds)" in speedup({"fig2": d}).ours
 
 
 def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
