@@ -76,9 +76,17 @@ def test_a_solve_past_the_limit_is_not_converged_and_guarded_solves_equal_unguar
     assert plain.converged and guarded.converged and guarded.iterations == plain.iterations
     np.testing.assert_array_equal(guarded.X, plain.X)
     np.testing.assert_array_equal(guarded.K, plain.K)
-    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0.0001")
+    # a solve that outlasts the limit by far: the solver process sleeps 30 s first (a limit of 0.1 ms on a real
+    # solve of a few ms was flaky on a loaded machine: the parent, scheduled late, found the result ready)
+    server, real = solver._server, solver._server.handler
+    server.stop()
+    monkeypatch.setattr(server, "handler", lambda *a: (time.sleep(30), real(*a))[1])
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0.5")
+    t0 = time.monotonic()
     stopped = solver.solve(xi, *guess)
+    assert time.monotonic() - t0 < 15
     assert not stopped.converged and "SDP_SOLVE_TIMEOUT" in stopped.status and np.isnan(stopped.cost)
+    server.handler = real                                    # the stopped process is gone; the next one solves
     monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "60")
     again = solver.solve(xi, *guess)
     assert again.converged and again.cost == plain.cost
