@@ -80,6 +80,11 @@ def method_order(method: str) -> tuple:
     return base, tuple(int(n) for n in re.findall(r"\d+", variant))
 
 
+def _by_method(tab: pd.DataFrame, then: list[str]) -> pd.DataFrame:
+    """``tab`` sorted by :func:`method_order`, then by the columns ``then``."""
+    return tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), *tab[then].iloc[i]))]
+
+
 def _log_ticks(axis, lo: float, hi: float) -> None:
     """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... (finer over about a decade) as plain
     numbers, no minor labels."""
@@ -141,8 +146,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     if d.empty or d["n_traj"].isna().all():
         return []
     by = ["method", "epochs", "n_traj"]
-    tab = _agg(d, by, "policy_cost_mean")
-    tab = tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), *tab[by[1:]].iloc[i]))]
+    tab = _by_method(_agg(d, by, "policy_cost_mean"), by[1:])
     if "success_rate" in d:
         succ = _agg(d, by, "success_rate").rename(columns={"mean": "success_mean", "ci95": "success_ci95"})
         tab = tab.merge(succ.drop(columns="n_seeds"), on=by, how="left")
@@ -364,8 +368,7 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     d = d[d.epochs == d.groupby("method").epochs.transform("max")]     # per method (PDDP+S alone has 3e3 on UR5)
     d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
     cols = [c for c in TABLE2C if c in d and d[c].notna().any()]
-    tab = d.groupby(["method", "t_a"])[cols].mean().reset_index()
-    tab = tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), tab.t_a.iloc[i]))]
+    tab = _by_method(d.groupby(["method", "t_a"])[cols].mean().reset_index(), ["t_a"])
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
     return [_save_csv(tab, out / f"table2c_{task}.csv"),
             _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]

@@ -99,6 +99,11 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     return written
 
 
+def _first_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """Each run's rows at its first evaluated iteration (where its loop T_a and first dataset are read)."""
+    return df[df.iteration == df.groupby("run").iteration.transform("min")]
+
+
 def method_variants(df: pd.DataFrame) -> pd.DataFrame:
     """For the figures: where one task has runs of a method that differ in how the policy acts, the
     variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
@@ -113,8 +118,7 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         mixed = (ks > 1) & df.k_rollout.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
     if {"horizon", "t_a", "run", "iteration"} <= set(df.columns):
-        first = df[df.iteration == df.groupby("run").iteration.transform("min")]
-        loop_t_a = df.run.map(first.groupby("run").t_a.min())
+        loop_t_a = df.run.map(_first_rows(df).groupby("run").t_a.min())
         pair = df.horizon.astype("Int64").astype(str) + "-ta" + loop_t_a.astype("Int64").astype(str)
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & loop_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
@@ -131,7 +135,7 @@ def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
         return df
     by = [df.task, df.method]
     keep = (df.epochs == df.epochs.groupby(by).transform("max")) | df.epochs.isna()
-    first = df[df.iteration == df.groupby("run").iteration.transform("min")].groupby("run").n_traj.max()
+    first = _first_rows(df).groupby("run").n_traj.max()
     n_traj = df.run.map(first).where(keep)
     keep &= (n_traj == n_traj.groupby(by).transform("max")) | df.run.map(first).isna()
     return df[keep]
