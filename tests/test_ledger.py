@@ -246,7 +246,18 @@ def test_fig3_claim_per_horizon_and_action_length():
                                  run=f"{task}-sdp-h{h}-ta{t_a}", success_rate=0.8, refined_iterations_mean=20,
                                  to_alone_iterations_mean=60, refined_cost_mean=5.0, to_alone_cost_mean=6.0))
     r = ur5_long_actions({"fig3": pd.DataFrame(rows)})
-    assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63): success 80%" in r.ours
+    assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63) at iteration 5: SDP success 80%" in r.ours
+    # DP alone says nothing of the claim: "not run", with DP's numbers and SDP named as missing
+    dp = pd.DataFrame(rows).assign(method="dp", success_rate=0.1, refined_iterations_mean=70)
+    r = ur5_long_actions({"fig3": dp})
+    assert r.verdict == "not run" and "SDP not run yet" in r.detail
+    assert "ur5-rinit (T_h 64, T_a 63) DP at iteration 5: success 10%, TO iterations 70 vs 60 alone" in r.ours
+    # SDP has finished one loop only: judged on it, DP beside it, the loop without SDP named
+    d = pd.concat([dp, pd.DataFrame(rows).query("t_a == 16")])
+    r = ur5_long_actions({"fig3": d})
+    assert "ur5-rinit (T_h 32, T_a 16) at iteration 5: SDP success 80%" in r.ours
+    assert "; DP success 10%" in r.ours and "ur5-rinit (T_h 64, T_a 63): SDP not run yet, DP success 10%" in r.ours
+    assert r.verdict == "partly" and "not every (task, T_a)" in r.detail
     d = pd.DataFrame(rows)
     d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
     r = ur5_long_actions({"fig3": d})

@@ -10,68 +10,15 @@ needs and its rule.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pandas as pd
 
+from sdp_cli.report.claims_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
 from sdp_cli.report.figures import _loop_t_a
-from sdp_cli.report.runs import mean_ci
+from sdp_cli.report.verdicts import (SOLVED, VERDICTS, Row, _last, _per_seed, _unfinished, combine, fmt,
+                                     ratio_verdict)
 
-SOLVED = 0.5          #: success rate from which a policy "solves" a task
-VERDICTS = ("reproduced", "partly", "not reproduced", "not run")
-
-
-@dataclass
-class Row:
-    ours: str
-    verdict: str
-    detail: str = ""     # what was measured beyond the headline number (shown in the notes column)
-
-
-def fmt(values, digits: int = 3, pct: bool = False, unit: str = "") -> str:
-    """``mean ± ci (n seeds)`` of per-seed values."""
-    m, h, n = mean_ci(pd.Series(values, dtype=float))
-    if not np.isfinite(m):
-        return "diverged" if np.isinf(m) else "n/a"
-    f = (lambda v: f"{100 * v:.0f}%") if pct else (lambda v: f"{v:.{digits}g}{unit}")
-    ci = f" ± {f(h)}" if np.isfinite(h) else ""
-    return f"{f(m)}{ci} ({n} seed{'s' if n != 1 else ''})"
-
-
-def ratio_verdict(r: float, paper: float) -> str:
-    """Reproduced with at least half the paper's effect (r - 1), partly with at least a tenth of it."""
-    if not np.isfinite(r):
-        return "not reproduced"
-    if r - 1 >= (paper - 1) / 2:
-        return "reproduced"
-    return "partly" if r - 1 >= (paper - 1) / 10 else "not reproduced"
-
-
-def combine(verdicts: list[str]) -> str:
-    """One verdict from several parts: reproduced if all are, not reproduced if all are not, else partly."""
-    if verdicts and all(v == "reproduced" for v in verdicts):
-        return "reproduced"
-    return "not reproduced" if all(v == "not reproduced" for v in verdicts) else "partly"
-
-
-def _last(d: pd.DataFrame) -> pd.DataFrame:
-    """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
-    and seed); a task's final iteration is the last one any of its runs reached."""
-    d = pd.concat([_loop_t_a(g) for _, g in d.groupby("task")]) if len(d) else d
-    return d[d.iteration == d.groupby("task").iteration.transform("max")]
-
-
-def _unfinished(d: pd.DataFrame) -> str:
-    """``"runs not finished (left out): ..."`` for runs that have not reached their task's final iteration."""
-    last = d.groupby(["task", "run"]).iteration.max()
-    final = d.groupby("task").iteration.max()
-    todo = sorted(run for (task, run), it in last.items() if it < final[task])
-    return f"runs not finished (left out): {', '.join(todo)}" if todo else ""
-
-
-def _per_seed(d: pd.DataFrame, col: str) -> pd.Series:
-    return d.groupby("train_seed")[col].mean()
+__all__ = ["CLAIMS", "SOLVED", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
 
 
 # ---------------------------------------------------------------------------- the claims' numbers
@@ -268,161 +215,40 @@ def quadrotor9_times(res) -> Row:
     return Row("; ".join(parts), verdict, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline")
 
 
-def sdp_reaches_to(res) -> Row:
-    """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K=5)."""
-    if "fig1" in res:
-        d = res["fig1"]
-        d = d[(d.method == "sdp") & (d.epochs == d.groupby("task").epochs.transform("max"))]
-        parts, ok = [], []
-        for task, g in d.groupby("task"):
-            to = g.to_alone_cost_mean.mean()
-            ok.append(np.isfinite(_first_n(g, to)))
-            parts.append(f"{task}: TO alone {to:.3g}, SDP within 10% " + _n_text(g, to))
-        return Row("; ".join(parts), "reproduced" if all(ok) and len(ok) >= 3 else "partly" if any(ok) else "not reproduced",
-                   _fig1_missing(res["fig1"], ("sdp",)))
-    d = res["ablation_k"]
-    g = d[(d.k_rollout == 5) & (d.epochs == d.epochs.max())]
-    to = g.to_alone_cost_mean.mean()
-    m = g.policy_cost_mean.mean()
-    return Row(f"pendulum only (the K ablation's K=5 runs = fig1's pendulum SDP at n_traj 10): SDP "
-               f"{fmt(_per_seed(g, 'policy_cost_mean'))} vs TO alone {to:.3g}",
-               "partly" if m <= 1.1 * to else "not reproduced", "fig1 not run: one task of three, one n_traj")
-
-
-#: Fig. 1's three tasks: a claim made over all of them is at most "partly" while one is missing
-FIG1_TASKS = ("pendulum", "ur5-fixed", "quadrotor-0")
-
-
-def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...]) -> str:
-    """``"fig1 not run on ..."`` for Fig. 1's tasks where ``d`` lacks a run of one of ``methods`` ("" when
-    none): a task with only PDDP runs is no evidence for a claim about SDP and DP."""
-    missing = [t for t in FIG1_TASKS if not all(((d.task == t) & (d.method == m)).any() for m in methods)]
-    what = "/".join(m.upper() for m in methods)
-    return f"fig1 not run on {', '.join(missing)} ({what})" if missing else ""
-
-
-def _fig1_final(res) -> pd.DataFrame:
-    """fig1's rows at each (task, method)'s largest epoch count (the second n_pl of Fig. 1)."""
-    d = res["fig1"]
-    return d[d.epochs == d.groupby(["task", "method"]).epochs.transform("max")]
-
-
-def _first_n(g: pd.DataFrame, to: float) -> float:
-    """Smallest n_traj from which the mean policy cost over seeds stays within 10% of TO alone, at it and at
-    every larger n_traj run (inf: none). "Needs n trajectories" means n and more suffice: a small dataset that
-    is within 10% by chance while larger ones are not does not count (see :func:`_first_within`)."""
-    by = g.groupby("n_traj").policy_cost_mean.mean().sort_index()
-    ok = (by <= 1.1 * to)[::-1].cummin()[::-1]     # within at n and at every larger n
-    return float(ok[ok].index.min()) if ok.any() else float("inf")
-
-
-def _first_within(g: pd.DataFrame, to: float) -> float:
-    """Smallest n_traj whose mean policy cost over seeds is within 10% of TO alone (inf: none)."""
-    by = g.groupby("n_traj").policy_cost_mean.mean()
-    ok = by[by <= 1.1 * to]
-    return float(ok.index.min()) if len(ok) else float("inf")
-
-
-def _n_text(g: pd.DataFrame, to: float) -> str:
-    """``"from n_traj N"`` / ``"never"``, with the first n_traj within 10% where it differs."""
-    n, first = _first_n(g, to), _first_within(g, to)
-    head = f"from n_traj {n:g}" if np.isfinite(n) else "never"
-    return head + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
-
-
-def dp_needs_more(res) -> Row:
-    """Claim 2: per task, the n_traj from which DP's mean cost stays within 10% of TO alone over SDP's."""
-    d = _fig1_final(res)
-    parts, verdicts = [], []
-    for task, g in d.groupby("task"):
-        to = g.to_alone_cost_mean.mean()
-        n = {m: _first_n(g[g.method == m], to) for m in ("sdp", "dp") if (g.method == m).any()}
-        if len(n) < 2:
-            continue
-        if not np.isfinite(n["sdp"]):
-            parts.append(f"{task}: SDP never within 10% of TO alone")
-            verdicts.append("not reproduced")
-            continue
-        r = n["dp"] / n["sdp"] if np.isfinite(n["dp"]) else g.n_traj.max() / n["sdp"]
-        bound = "" if np.isfinite(n["dp"]) else "> "
-        parts.append(f"{task}: SDP {_n_text(g[g.method == 'sdp'], to)}, DP {_n_text(g[g.method == 'dp'], to)}"
-                     f" ({bound}{r:.2g}x)")
-        verdicts.append(ratio_verdict(r, 5.0) if not bound or r >= 3 else "partly")
-    if not verdicts:
-        return Row("", "not run", "fig1 has no task with both SDP and DP")
-    missing = _fig1_missing(d, ("sdp", "dp"))
-    verdict = combine(verdicts)
-    verdict = "partly" if missing and verdict == "reproduced" else verdict   # a claim over Fig. 1's tasks
-    return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        "n_traj: the smallest dataset from which the mean cost over seeds stays within 10% of TO alone (at it and "
-        "every larger one); DP never: the ratio is a lower bound", missing) if x))
-
-
-def pendulum_torque(res) -> Row:
-    """Claim 3: the pendulum, SDP's success at n_traj 3 and DP's best success over n_traj."""
-    d = _fig1_final(res)
-    p = d[d.task == "pendulum"]
-    sdp, dp = p[(p.method == "sdp") & (p.n_traj == 3)], p[p.method == "dp"]
-    if sdp.empty or dp.empty:
-        return Row("", "not run", "pendulum SDP at n_traj 3 or DP not run")
-    s3 = _per_seed(sdp, "success_rate")
-    dp_best = dp.groupby("n_traj").success_rate.mean()
-    ok = [s3.mean() >= SOLVED, dp_best.max() < SOLVED]
-    return Row(f"SDP at n_traj 3: success {fmt(s3, pct=True)}, cost {fmt(_per_seed(sdp, 'policy_cost_mean'))} "
-               f"(TO alone {p.to_alone_cost_mean.mean():.3g}); DP's best success over n_traj "
-               f"{100 * dp_best.max():.0f}% (n_traj {dp_best.idxmax():g})",
-               "reproduced" if all(ok) else "partly" if any(ok) else "not reproduced")
-
-
-def mlp_unstable(res) -> Row:
-    """Claim 4: per task, the share of evaluations (n_traj, seed, epochs) with a diverged rollout, per method;
-    PDDP+S on UR5(0, 0) at 2e3 epochs: the n_traj at which it solves the task. The MLPs are unstable on a
-    task where both diverge in >= 25% of their evaluations there, more often than the diffusion policies."""
-    d = res["fig1"]
-    if not d.method.isin(["pddp", "pddp_s"]).any():
-        return Row("", "not run", "fig1 has no PDDP or PDDP+S run yet")
-    per_task, unstable = [], {}
-    for t, g in sorted(d.groupby("task")):
-        share = {m: float((gm.diverged > 0).mean()) for m, gm in g.groupby("method")}
-        per_task.append(f"{t}: " + ", ".join(f"{m.upper()} {100 * v:.0f}%" for m, v in sorted(share.items())))
-        mlp = [share[m] for m in ("pddp", "pddp_s") if m in share]
-        diff = [share[m] for m in ("sdp", "dp") if m in share]
-        if mlp:
-            unstable[t] = min(mlp) >= 0.25 and (not diff or min(mlp) > max(diff))
-    parts = ["evaluations with a diverged rollout: " + "; ".join(per_task)]
-    if unstable:
-        parts.append("unstable on " + (", ".join(t for t, u in unstable.items() if u) or "no task"))
-    u = d[(d.task == "ur5-fixed") & (d.method == "pddp_s") & (d.epochs == 2000)]
-    window = None
-    if not u.empty:
-        by = u.groupby("n_traj").success_rate.mean()
-        solved = sorted(float(n) for n in by[by >= SOLVED].index)
-        window = bool(solved) and min(solved) >= 8 and max(solved) <= 16
-        parts.append("PDDP+S on UR5(0, 0) at 2e3 epochs solves at n_traj " + (", ".join(f"{n:g}" for n in solved) or "none"))
-    ok = list(unstable.values()) + ([window] if window is not None else [])
-    return Row("; ".join(parts), "reproduced" if all(ok) and window is not None else "partly" if any(ok)
-               else "not reproduced", "rule: unstable on a task = PDDP and PDDP+S each have a diverged rollout in >= "
-                                      "25% of their evaluations on it, more often than the diffusion policies")
-
-
 def ur5_long_actions(res) -> Row:
     """Claim 8 (Fig. 3): per UR5 variant and (T_h, T_a), SDP's success at the last iteration, and the
-    TO iterations and cost from SDP's guess against TO alone."""
+    TO iterations and cost from SDP's guess against TO alone; DP's beside it where it ran. "not run"
+    until SDP has reached the last iteration (DP's numbers alone say nothing of the claim)."""
     last = _last(res["fig3"])
+    it = f"iteration {last.iteration.max() + 1:g}" if len(last) else ""
+    unfinished = _unfinished(res["fig3"])
+
+    def part(g) -> str:
+        return (f"success {100 * _per_seed(g, 'success_rate').mean():.0f}%, TO iterations "
+                f"{g.refined_iterations_mean.mean():.3g} vs {g.to_alone_iterations_mean.mean():.3g} alone, "
+                f"cost {g.refined_cost_mean.mean():.3g} vs {g.to_alone_cost_mean.mean():.3g}")
+
+    loops = {k: g for k, g in last.groupby(["task", "horizon", "t_a"])}
     sdp = last[last.method == "sdp"]
+    if sdp.empty:
+        dp = "; ".join(f"{task} (T_h {h:g}, T_a {t_a:g}) DP at {it}: {part(g[g.method == 'dp'])}"
+                       for (task, h, t_a), g in loops.items() if (g.method == "dp").any())
+        return Row(dp, "not run", "; ".join(x for x in ("SDP not run yet", unfinished) if x))
     parts, ok = [], []
-    for (task, h, t_a), g in sdp.groupby(["task", "horizon", "t_a"]):
-        s = _per_seed(g, "success_rate").mean()
-        faster = g.refined_iterations_mean.mean() < g.to_alone_iterations_mean.mean()
-        better = g.refined_cost_mean.mean() <= g.to_alone_cost_mean.mean()
-        ok.append(s >= SOLVED and faster and better)
-        parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): success {100 * s:.0f}%, TO iterations "
-                     f"{g.refined_iterations_mean.mean():.3g} vs {g.to_alone_iterations_mean.mean():.3g} alone, "
-                     f"cost {g.refined_cost_mean.mean():.3g} vs {g.to_alone_cost_mean.mean():.3g}")
+    for (task, h, t_a), g in loops.items():
+        s, dp = g[g.method == "sdp"], g[g.method == "dp"]
+        if s.empty:
+            parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): SDP not run yet, DP {part(dp)}")
+            continue
+        rate = _per_seed(s, "success_rate").mean()
+        faster = s.refined_iterations_mean.mean() < s.to_alone_iterations_mean.mean()
+        better = s.refined_cost_mean.mean() <= s.to_alone_cost_mean.mean()
+        ok.append(rate >= SOLVED and faster and better)
+        parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}) at {it}: SDP {part(s)}" + (f"; DP {part(dp)}" if len(dp) else ""))
     full = {16, 31, 63} <= set(sdp.t_a.astype(int)) and sdp.task.nunique() >= 2
     verdict = "reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced"
-    return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        "" if full else "not every (task, T_a) of Fig. 3 was run", _unfinished(res["fig3"])) if x))
+    return Row(" | ".join(parts), verdict, "; ".join(x for x in (
+        "" if full else "not every (task, T_a) of Fig. 3 was run", unfinished) if x))
 
 
 #: claim id -> (experiments it needs, function)
