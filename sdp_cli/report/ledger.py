@@ -85,7 +85,7 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
     lines = ["# The paper's claims beside our numbers", "",
              "Written by `sdp report --ledger results/PAPER.md` from `results/*/all_runs.csv`, `results/bench/*.csv`",
              "and `results/claims.yaml` (the claims, the paper's numbers and the notes); do not edit by hand.",
-             "Rules (the same for every claim, `sdp_cli/report/claims.py`): means over seeds with 95% intervals; a",
+             "Rules (the same for every claim, `sdp_cli/report/verdicts.py`): means over seeds with 95% intervals; a",
              "ratio claim is *reproduced* when ours keeps at least half of the paper's effect (r - 1), *partly* with",
              "at least a tenth of it; a policy *solves* a task at >= 50% success; runs that have not reached the",
              "final iteration are left out and named; *not run* gives the estimate.", "",
