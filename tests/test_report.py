@@ -204,4 +204,5 @@ def test_loop_figures_use_one_budget_per_method():
     assert list(kept[kept.task == "ur5-rinit"].n_traj) == [50, 50, 100]
     assert budget_title(u) == ", largest budget per method"
     assert budget_title(u[u.method == "pddp"]) == ", n_traj 16, 2000 epochs"
-    assert budget_title(kept[kept.task == "ur5-rinit"]) == ", n_traj 50, 10000 epochs"
+    assert budget_title(kept[kept.task == "ur5-rinit"]) == ", n_traj 50, 50, 100 by iteration, 10000 epochs"
+    assert budget_title(kept[(kept.task == "ur5-rinit") & (kept.iteration < 2)]) == ", n_traj 50, 10000 epochs"

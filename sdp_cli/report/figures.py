@@ -193,14 +193,17 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
 
 
 def budget_title(d: pd.DataFrame) -> str:
-    """``", n_traj 30, 2000 epochs"`` when the rows share one budget (n_traj at their first iteration), else
-    ``", largest budget per method"`` (:func:`sdp_cli.report.make.largest_budget`); empty without those columns."""
+    """``", n_traj 30, 2000 epochs"`` when the rows share one budget, ``", n_traj 50, 50, 100 by iteration,
+    ..."`` when they share a schedule that grows (Fig. 3), else ``", largest budget per method"``
+    (:func:`sdp_cli.report.make.largest_budget`); empty without those columns."""
     if d.empty or not {"epochs", "n_traj", "iteration"} <= set(d.columns):
         return ""
-    first = d[d.iteration == d.iteration.min()]
-    n, e = first.n_traj.dropna().unique(), first.epochs.dropna().unique()
-    if len(n) == 1 and len(e) == 1:
-        return f", n_traj {n[0]:g}, {e[0]:g} epochs"
+    per_it = d.groupby("iteration").n_traj.agg(lambda s: tuple(s.dropna().unique()))
+    e = d.epochs.dropna().unique()
+    if len(e) == 1 and all(len(n) == 1 for n in per_it):
+        sched = [n[0] for n in per_it]
+        n = f"{sched[0]:g}" if len(set(sched)) == 1 else ", ".join(f"{v:g}" for v in sched) + " by iteration"
+        return f", n_traj {n}, {e[0]:g} epochs"
     return ", largest budget per method"
 
 
