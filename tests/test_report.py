@@ -206,3 +206,36 @@ def test_loop_figures_use_one_budget_per_method():
     assert budget_title(u[u.method == "pddp"]) == ", n_traj 16, 2000 epochs"
     assert budget_title(kept[kept.task == "ur5-rinit"]) == ", n_traj 50, 50, 100 by iteration, 10000 epochs"
     assert budget_title(kept[(kept.task == "ur5-rinit") & (kept.iteration < 2)]) == ", n_traj 50, 10000 epochs"
+
+
+def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
+    """Per group of the experiment file: runs finished (last iteration at the group's epochs), partway (named,
+    with iterations or epochs so far) and not run; no section once every run finished."""
+    import pandas as pd
+    import yaml
+
+    from sdp_cli.report.coverage import coverage_lines, experiment_coverage
+
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "x.yaml").write_text(yaml.safe_dump({"groups": [
+        {"task": "ur5-rinit", "methods": ["sdp", "dp"], "n_traj_schedule": [50, 50, 100], "n_algo": 3,
+         "epochs": 100, "tag": "h64-ta63"},
+        {"task": "pendulum", "methods": ["sdp"], "seeds": [0, 1], "n_traj": [1, 3], "epochs": 2000}]}))
+    rows = [{"run": "ur5-rinit-sdp-n50-s0-h64-ta63", "iteration": it, "epochs": 100} for it in range(3)]
+    rows += [{"run": "ur5-rinit-dp-n50-s0-h64-ta63", "iteration": it, "epochs": 100} for it in range(2)]
+    rows += [{"run": "pendulum-sdp-n1-s0", "iteration": 0, "epochs": e} for e in (1000, 2000)]
+    rows += [{"run": "pendulum-sdp-n3-s1", "iteration": 0, "epochs": 1000}]          # its save_at checkpoint only
+    rows += [{"run": "elsewhere-sdp-n1-s0", "iteration": 0, "epochs": 5}]             # not a run of the experiment
+    cov = experiment_coverage(pd.DataFrame(rows), "x", tmp_path)
+    assert cov.to_dict("records") == [
+        {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1,
+         "partway": "1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3)", "not_run": 0},
+        {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1,
+         "partway": "1 (pendulum-sdp-n3-s1 1000/2000 epochs)", "not_run": 2}]
+    lines = coverage_lines(pd.DataFrame(rows), "x", tmp_path)
+    assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
+    done = [{"run": r, "iteration": it, "epochs": e} for r, n, e in (
+        ("ur5-rinit-sdp-n50-s0-h64-ta63", 3, 100), ("ur5-rinit-dp-n50-s0-h64-ta63", 3, 100),
+        ("pendulum-sdp-n1-s0", 1, 2000), ("pendulum-sdp-n3-s0", 1, 2000), ("pendulum-sdp-n1-s1", 1, 2000),
+        ("pendulum-sdp-n3-s1", 1, 2000)) for it in range(n)]
+    assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == []

@@ -14,8 +14,9 @@ Per task found under ``--runs`` (file names carry the task):
 - ``timing_<task>``: where the time goes (collection, training, evaluation), per iteration;
 - variants of a method (K, or (T_h, T_a)) are drawn apart (:func:`method_variants`); all but
   ``fig1`` and ``timing`` show, per method, the runs of the largest budget (:func:`largest_budget`);
-- ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets; a
-  hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
+- ``all_runs.csv`` (every row) and ``README.md`` (index with commit and budgets, and for an
+  experiment of ``pipelines/`` with runs missing, how many it holds: :mod:`sdp_cli.report.coverage`;
+  a hand-written ``NOTES.md`` in the output folder, if any, is linked from it).
 
 When the output folder sits in a folder named ``results`` (``results/<experiment>``), the
 top index ``results/README.md`` is rewritten too: one line per experiment folder with the
@@ -31,6 +32,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
+from sdp_cli.report.coverage import coverage_lines
 from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
                                     table2c, timing)
 from sdp_cli.report.traj import trajectories
@@ -189,6 +191,8 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
              "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
+    if spec.is_file():
+        lines += coverage_lines(df, name)
     revs = run_revisions(df)
     if not revs.empty:
         lines += ["", "## Code revisions of the runs (from the evaluation manifests)", "",

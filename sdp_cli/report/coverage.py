@@ -1,0 +1,59 @@
+"""How much of an experiment a report holds: per group of ``pipelines/<name>.yaml``, its runs that reached
+their last iteration, those partway (with ``evaluated / n_algo``) and those not in the report.
+
+A report drawn while runs go on (or after some were left out for lack of time) says so in its README
+instead of letting a figure pass for the whole experiment. Reads the experiment file only
+(:mod:`sdp_cli.experiment`), never the runs' folders: the rows given are what the report drew.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import pandas as pd
+
+from sdp_cli.experiment import check_group, load_experiment, run_name
+
+#: partway runs named per group before "and N more"
+MAX_NAMED = 6
+
+
+def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path(".")) -> pd.DataFrame:
+    """One row per group of experiment ``name``: ``group`` (task, methods, tag or epochs), ``runs``,
+    ``finished`` (every iteration evaluated, the last at the group's epochs), ``partway`` (names with
+    ``k/n_algo`` iterations, or the epochs evaluated so far), ``not_run``.
+    ``df``: the report's rows (``run``, ``iteration``)."""
+    spec = load_experiment(name, root)
+    reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
+    epochs = df.groupby("run").epochs.max().to_dict() if len(df) and "epochs" in df else {}
+    rows = []
+    for gi, raw in enumerate(spec["groups"]):
+        g = check_group(name, gi, raw)
+        keys = [run_name(g["task"], m, n, s, g["tag"])
+                for m, s, n in itertools.product(g["methods"], g["seeds"], g["n_traj"])]
+        n_algo = int(g["n_algo"])
+        # finished: the last iteration evaluated at the group's epochs (not only at a `save_at` checkpoint)
+        done = [k for k in keys if reached.get(k, 0) >= n_algo and epochs.get(k, g["epochs"]) >= g["epochs"]]
+        part = [f"{k} " + (f"{reached[k]}/{n_algo}" if reached[k] < n_algo else f"{epochs[k]:g}/{g['epochs']:g} epochs")
+                for k in keys if k in reached and k not in done]
+        label = f"{g['task']} {', '.join(g['methods'])}" + (f" {g['tag']}" if g["tag"] else f", {g['epochs']:g} epochs")
+        named = ", ".join(part[:MAX_NAMED]) + (f" and {len(part) - MAX_NAMED} more" if len(part) > MAX_NAMED else "")
+        rows.append({"group": label, "runs": len(keys), "finished": len(done),
+                     "partway": f"{len(part)}" + (f" ({named})" if part else ""),
+                     "not_run": len(keys) - len(done) - len(part)})
+    return pd.DataFrame(rows)
+
+
+def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path(".")) -> list[str]:
+    """The README section of :func:`experiment_coverage` (empty when every run finished)."""
+    cov = experiment_coverage(df, name, root)
+    if cov.empty or (cov.finished == cov.runs).all():
+        return []
+    total, fin = int(cov.runs.sum()), int(cov.finished.sum())
+    lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished", "",
+             "Partway: iterations evaluated of the run's n_algo (stopped or still running); not run: no evaluation "
+             "yet. Figures and the ledger use what is here.", "",
+             "| group | runs | finished | partway | not run |", "|---|---|---|---|---|"]
+    lines += [f"| {r.group} | {r.runs} | {r.finished} | {r.partway} | {r.not_run} |" for r in cov.itertuples()]
+    return lines
