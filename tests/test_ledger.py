@@ -249,9 +249,14 @@ def test_fig3_claim_per_horizon_and_action_length():
     assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63) at iteration 5: SDP success 80%" in r.ours
     # DP alone says nothing of the claim: "not run", with DP's numbers and SDP named as missing
     dp = pd.DataFrame(rows).assign(method="dp", success_rate=0.1, refined_iterations_mean=70)
+    dp["run"] = dp.run.str.replace("-sdp-", "-dp-")
     r = ur5_long_actions({"fig3": dp})
     assert r.verdict == "not run" and "SDP not run yet" in r.detail
     assert "ur5-rinit (T_h 64, T_a 63) DP at iteration 5: success 10%, TO iterations 70 vs 60 alone" in r.ours
+    started = pd.concat([dp, pd.DataFrame(rows).query("iteration < 2")])      # SDP partway: named as unfinished
+    r = ur5_long_actions({"fig3": started})
+    assert r.verdict == "not run" and r.detail.startswith("runs not finished (left out): ")
+    assert "ur5-rinit-sdp-h64-ta63" in r.detail and "not run yet" not in r.detail
     # SDP has finished one loop only: judged on it, DP beside it, the loop without SDP named
     d = pd.concat([dp, pd.DataFrame(rows).query("t_a == 16")])
     r = ur5_long_actions({"fig3": d})

@@ -233,7 +233,8 @@ def ur5_long_actions(res) -> Row:
     if sdp.empty:
         dp = "; ".join(f"{task} (T_h {h:g}, T_a {t_a:g}) DP at {it}: {part(g[g.method == 'dp'])}"
                        for (task, h, t_a), g in loops.items() if (g.method == "dp").any())
-        return Row(dp, "not run", "; ".join(x for x in ("SDP not run yet", unfinished) if x))
+        started = (res["fig3"].method == "sdp").any()     # then named among the unfinished runs
+        return Row(dp, "not run", "; ".join(x for x in ("" if started else "SDP not run yet", unfinished) if x))
     parts, ok = [], []
     for (task, h, t_a), g in loops.items():
         s, dp = g[g.method == "sdp"], g[g.method == "dp"]
