@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import re
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -277,7 +278,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax.set_ylim(lo, top * 1.2)
     _log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
-    ax.set_title(f"Fig. 2a — alternating loop, {task}{budget_title(d)}", fontsize=10)
+    ax.set_title(textwrap.fill(f"Fig. 2a — alternating loop, {task}{budget_title(d)}", 70), fontsize=10)
     ax2.set_ylim(-0.03, 1.03)
     ax2.set_ylabel("share of policy rollouts reaching the goal")
     ax2.set_title("policy success rate", fontsize=10)
