@@ -65,8 +65,11 @@ def run_name(task: str, method: str, n_traj: int, seed: int, tag: str | None = N
     return f"{task}-{method}-n{n_traj}-s{seed}" + (f"-{tag}" if tag else "")
 
 
+def group_run_names(g: dict) -> list[str]:
+    """The run names of one checked group (:func:`check_group`): methods x seeds x n_traj."""
+    return [run_name(g["task"], m, n, s, g["tag"]) for m, s, n in itertools.product(g["methods"], g["seeds"], g["n_traj"])]
+
+
 def run_names(name: str, spec: dict) -> list[str]:
     """The run names of an experiment (cheap: no run is validated)."""
-    return [run_name(g["task"], m, n, s, g["tag"]) for gi, raw in enumerate(spec["groups"])
-            for g in [check_group(name, gi, raw)]
-            for m, s, n in itertools.product(g["methods"], g["seeds"], g["n_traj"])]
+    return [k for gi, raw in enumerate(spec["groups"]) for k in group_run_names(check_group(name, gi, raw))]

@@ -8,12 +8,11 @@ instead of letting a figure pass for the whole experiment. Reads the experiment 
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 
 import pandas as pd
 
-from sdp_cli.experiment import check_group, load_experiment, run_name
+from sdp_cli.experiment import check_group, group_run_names, load_experiment
 
 #: partway runs named per group before "and N more"
 MAX_NAMED = 6
@@ -30,8 +29,7 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path(".")) -> 
     rows = []
     for gi, raw in enumerate(spec["groups"]):
         g = check_group(name, gi, raw)
-        keys = [run_name(g["task"], m, n, s, g["tag"])
-                for m, s, n in itertools.product(g["methods"], g["seeds"], g["n_traj"])]
+        keys = group_run_names(g)
         n_algo = int(g["n_algo"])
         # finished: the last iteration evaluated at the group's epochs (not only at a `save_at` checkpoint)
         done = [k for k in keys if reached.get(k, 0) >= n_algo and epochs.get(k, g["epochs"]) >= g["epochs"]]
