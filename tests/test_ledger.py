@@ -203,12 +203,16 @@ def test_fig1_claims_on_synthetic_rows():
     d.loc[(d.method == "dp"), "policy_cost_mean"] = 30.0                 # DP never: a lower bound 64 / 4
     assert "DP never (> 16x)" in dp_needs_more({"fig1": d}).ours
     part = dp_needs_more({"fig1": _fig1_rows().query("task == 'pendulum'")})   # one of Fig. 1's three tasks
-    assert part.verdict == "partly" and "fig1 not run on ur5-fixed, quadrotor-0 (SDP/DP)" in part.detail
+    assert part.verdict == "partly" and "fig1 not run on ur5-fixed (SDP, DP), quadrotor-0 (SDP, DP)" in part.detail
     # a task with PDDP+S runs only is still missing for a claim about SDP and DP
     d = _fig1_rows()
     d = d[(d.task == "pendulum") | (d.method == "pddp_s")]
     part = dp_needs_more({"fig1": d})
-    assert part.verdict == "partly" and "fig1 not run on ur5-fixed, quadrotor-0 (SDP/DP)" in part.detail
+    assert part.verdict == "partly" and "fig1 not run on ur5-fixed (SDP, DP), quadrotor-0 (SDP, DP)" in part.detail
+    # DP without SDP on a task names SDP only
+    d = _fig1_rows()
+    d = d[(d.task == "pendulum") | (d.method == "dp")]
+    assert "fig1 not run on ur5-fixed (SDP), quadrotor-0 (SDP)" in dp_needs_more({"fig1": d}).detail
     d = _fig1_rows()
     d.loc[d.method == "dp", "policy_cost_mean"] = 10.0                   # DP as good as SDP: 1x everywhere
     assert dp_needs_more({"fig1": d.query("task == 'pendulum'")}).verdict == "not reproduced"

@@ -33,11 +33,12 @@ FIG1_TASKS = ("pendulum", "ur5-fixed", "quadrotor-0")
 
 
 def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...]) -> str:
-    """``"fig1 not run on ..."`` for Fig. 1's tasks where ``d`` lacks a run of one of ``methods`` ("" when
-    none): a task with only PDDP runs is no evidence for a claim about SDP and DP."""
-    missing = [t for t in FIG1_TASKS if not all(((d.task == t) & (d.method == m)).any() for m in methods)]
-    what = "/".join(m.upper() for m in methods)
-    return f"fig1 not run on {', '.join(missing)} ({what})" if missing else ""
+    """``"fig1 not run on ur5-fixed (SDP), quadrotor-0 (SDP, DP)"``: Fig. 1's tasks where ``d`` lacks a run of
+    one of ``methods``, each with the methods it lacks ("" when none); a task with only PDDP runs is no
+    evidence for a claim about SDP and DP."""
+    missing = {t: [m.upper() for m in methods if not ((d.task == t) & (d.method == m)).any()] for t in FIG1_TASKS}
+    parts = [f"{t} ({', '.join(ms)})" for t, ms in missing.items() if ms]
+    return f"fig1 not run on {', '.join(parts)}" if parts else ""
 
 
 def _fig1_final(res) -> pd.DataFrame:
