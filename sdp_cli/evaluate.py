@@ -79,6 +79,23 @@ def group_violation_rates(r: dict, meta: dict) -> dict[str, float]:
     return {f"{g}_violation_rate": float(np.mean(~(v <= VIOLATION_TOL))) for g, v in arrays.items()}
 
 
+def terminal_cost_mean(r: dict, meta: dict) -> dict[str, float]:
+    """``terminal_cost_mean``: the mean over instances of the cost's terminal term ``l_T(x_T)`` (the part of
+    ``policy_cost_mean`` that the final state alone makes; inf when a rollout diverged). From the rollout's
+    ``terminal_cost`` array, or, for rollouts written before it existed, recomputed from ``X`` and ``xi`` with
+    the task it names ({} when neither is there)."""
+    if "terminal_cost" in r:
+        v = np.asarray(r["terminal_cost"], float)
+    elif all(k in r for k in ("X", "xi")):
+        from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
+
+        task = get_task(meta.get("task"), **(meta.get("task_options") or {}))
+        v = task.terminal_costs(r["X"], r["xi"])
+    else:
+        return {}
+    return {"terminal_cost_mean": float(np.mean(v)) if np.all(np.isfinite(v)) else float("inf")}
+
+
 def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
@@ -95,6 +112,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "horizon": pcfg.get("T_h"), "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),
+        **terminal_cost_mean(r, rmeta),
         "success_rate": float(np.mean(r["reached"])),
         "diverged": int(np.sum(r["diverged"])),
         "max_violation": float(np.max(np.where(np.isfinite(r["max_violation"]), r["max_violation"], np.inf))),

@@ -126,8 +126,8 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
 
 
 def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray) -> dict[str, np.ndarray]:
-    """True cost, constraint violation (the max, and per constraint group: ``violation_<group>``, e.g.
-    ``violation_obstacles``), divergence and goal flags per instance ``(N,)``."""
+    """True cost and its terminal term (``terminal_cost``), constraint violation (the max, and per constraint
+    group: ``violation_<group>``, e.g. ``violation_obstacles``), divergence and goal flags per instance ``(N,)``."""
     n = len(xis)
     cost, goal = np.full(n, np.inf), np.full(n, np.inf)
     groups = task.violations_per_instance(X, U, xis)
@@ -140,7 +140,8 @@ def evaluate_rollouts(task: Task, X: np.ndarray, U: np.ndarray, xis: np.ndarray)
             except NotImplementedError:
                 goal[i] = np.nan
     diverged = ~np.isfinite(cost) | (cost > DIVERGENCE_COST)
-    return {"cost": cost, "max_violation": viol, "goal_distance": goal, "diverged": diverged,
+    terminal = np.where(np.isfinite(cost), task.terminal_costs(X, xis), np.inf)
+    return {"cost": cost, "terminal_cost": terminal, "max_violation": viol, "goal_distance": goal, "diverged": diverged,
             "reached": (goal <= task.goal_tolerance) & ~diverged, **{f"violation_{g}": v for g, v in groups.items()}}
 
 

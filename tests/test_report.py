@@ -75,7 +75,8 @@ def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 1, "n": 2, "epochs": 5,
            "policy_cost_mean": 1.0, "policy_cost_median": 1.0, "success_rate": 1.0, "rollout_time": 0.5,
-           "run": "my-run", "iteration": 3, "controls_violation_rate": 0.0}   # (a row of this code: no rollout re-read)
+           "run": "my-run", "iteration": 3, "controls_violation_rate": 0.0,
+           "terminal_cost_mean": 0.0}   # (a row of this code: no rollout re-read)
     d = tmp_path / "runs" / "anywhere" / "deep"      # no it<k> folder: nothing is guessed from the path
     d.mkdir(parents=True)
     ro = d / "r.npz"
@@ -116,20 +117,36 @@ def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_p
 
 
 def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp_path):
+    """Per-group violation rates and the terminal cost's mean, recomputed from an older rollout's X, U and xi,
+    are what this code's rollout evaluation stores; rows of this code are kept as they are."""
     import numpy as np
     import pandas as pd
 
     from sdp_cli.data.artifacts import save_npz
+    from sdp_cli.evaluate import evaluation_row
     from sdp_cli.report.runs import _backfill_older_rows
+    from sdp_cli.rollout import evaluate_rollouts
+    from sdp_cli.tasks import get_task
 
     X, U = np.zeros((2, 101, 2)), np.zeros((2, 100, 1))
+    X[1, -1, 0] = 1.0                                                # one ends at the goal (q = 0), one 1 rad away
     U[1, 7] = 30.0                                                   # above the pendulum's 25 N m bound
-    ro = save_npz(tmp_path / "r.npz", {"X": X, "U": U, "xi": np.zeros((2, 2)), "cost": np.zeros(2)},
+    xis = np.zeros((2, 2))
+    ro = save_npz(tmp_path / "r.npz", {"X": X, "U": U, "xi": xis, "cost": np.zeros(2)},
                   kind="rollout", config={}, task="pendulum", task_options={})
     old = pd.DataFrame({"violation_rate": [0.5, 0.0], "rollouts": [str(ro), None]})
     got = _backfill_older_rows(old)
     assert got.loc[0, "controls_violation_rate"] == 0.5 and np.isnan(got.loc[1, "controls_violation_rate"])
-    new = old.assign(controls_violation_rate=[0.25, 0.0])
+    ev = evaluate_rollouts(get_task("pendulum"), X, U, xis)
+    assert ev["terminal_cost"][0] < 1e-12 < ev["terminal_cost"][1] < ev["cost"][1]
+    assert got.loc[0, "terminal_cost_mean"] == np.mean(ev["terminal_cost"]) and np.isnan(got.loc[1, "terminal_cost_mean"])
+    now = save_npz(tmp_path / "now.npz", {**ev, "X": X, "U": U, "xi": xis}, kind="rollout", config={},
+                   task="pendulum", task_options={})
+    assert evaluation_row(now)["terminal_cost_mean"] == got.loc[0, "terminal_cost_mean"]
+    ev["terminal_cost"][1] = np.inf                                  # a diverged rollout: the mean is inf
+    diverged = save_npz(tmp_path / "div.npz", ev, kind="rollout", config={}, task="pendulum", task_options={})
+    assert evaluation_row(diverged)["terminal_cost_mean"] == np.inf
+    new = old.assign(controls_violation_rate=[0.25, 0.0], terminal_cost_mean=[3.0, 1.0])
     pd.testing.assert_frame_equal(_backfill_older_rows(new), new)   # rows of this code are kept as they are
 
 

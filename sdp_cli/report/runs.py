@@ -19,7 +19,7 @@ from sdp_cli.argmin import policy_outcomes
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.evaluate import (ARTIFACT_KEYS, MANIFEST_SUFFIX, group_violation_rates, read_evaluation,
-                               read_manifest)
+                               read_manifest, terminal_cost_mean)
 
 #: columns load_runs adds that hold paths on this machine (never written to committed tables)
 PATH_COLUMNS = ("source", *ARTIFACT_KEYS)
@@ -91,13 +91,18 @@ def _violation_groups(rollouts: str) -> dict:
     return group_violation_rates(*load_npz(rollouts, kind="rollout"))
 
 
+def _terminal_cost(rollouts: str) -> dict:
+    return terminal_cost_mean(*load_npz(rollouts, kind="rollout"))
+
+
 def _backfill_older_rows(df: pd.DataFrame) -> pd.DataFrame:
     """Columns that older evaluations lack or computed differently, from the artifacts they name:
     ``policy_wins`` / ``policy_ties`` (ties used to count as wins) from the refine, the per-group
-    violation rates (``obstacles_violation_rate``, ...) from the rollouts."""
+    violation rates (``obstacles_violation_rate``, ...) and ``terminal_cost_mean`` from the rollouts."""
     if "policy_wins" in df:
         df = _backfill(df, "policy_ties", "refined", _policy_outcomes, stale=("policy_wins", "policy_ties"))
-    return _backfill(df, "controls_violation_rate", "rollouts", _violation_groups)
+    df = _backfill(df, "controls_violation_rate", "rollouts", _violation_groups)
+    return _backfill(df, "terminal_cost_mean", "rollouts", _terminal_cost)
 
 
 def mean_ci(values: pd.Series) -> tuple[float, float, int]:

@@ -359,6 +359,15 @@ class Task(ABC):
         run = self.f_running_cost.map(len(U))(X[:-1].T, U.T, np.repeat(xi[:, None], len(U), 1))
         return float(run.full().sum() + float(self.f_terminal_cost(X[-1], xi)))
 
+    def terminal_costs(self, X: np.ndarray, xis: np.ndarray) -> np.ndarray:
+        """The terminal term ``l_T(x_T; xi)`` of :meth:`cost` per instance: ``X (N, T+1, nx)``, ``xis (N, n_xi)``
+        -> ``(N,)``; inf for a trajectory with non-finite entries (a diverged rollout)."""
+        out = np.full(len(xis), np.inf)
+        for i, (Xi, xi) in enumerate(zip(X, xis)):
+            if np.all(np.isfinite(Xi)):
+                out[i] = float(self.f_terminal_cost(Xi[-1], xi))
+        return out
+
     def state_constraint_groups(self) -> dict[str, slice]:
         """Named groups of the rows of ``h`` (e.g. the quadrotor's ``floor_ceiling`` and ``obstacles``), so
         that an evaluation can say which constraint a rollout broke; empty groups are left out."""
