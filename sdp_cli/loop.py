@@ -252,7 +252,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,
                   log=lambda s: None)
         log(f"[it{k}] evaluate on {cfg.n_test} test instances")
-        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"run": out.name, "iteration": k, "loop_seed": cfg.seed},
+        df = run_iteration_eval(policy_dir, d / "eval", cfg, {"run": out.name, "iteration": k, "loop_seed": cfg.seed,
+                                                                   "n_algo": cfg.n_algo},
                                 log,
                                 last=k == cfg.n_algo - 1, progress=progress)
         tables.append(df)

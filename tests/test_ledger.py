@@ -178,6 +178,16 @@ def test_quadrotor_rules_per_layout():
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
     assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
     assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"
+    # a loop partway (3 of its n_algo 5 iterations) is no final iteration, even when no run of the task is further
+    d = fig4(dp_violates=0.3).assign(n_algo=lambda x: np.where(x.task == "quadrotor-9", 5, 1))
+    part = d[(d.task != "quadrotor-9") | ((d.method == "dp") & (d.iteration < 3))]
+    r = quadrotor9_times({"fig4": part})
+    assert r.verdict == "not run" and r.detail == "runs not finished (left out): quadrotor-9-dp-s0, quadrotor-9-dp-s1"
+    r = quadrotor_precision({"fig4": part})
+    assert "quadrotor-9" not in r.ours and "quadrotor-9-dp-s0" in r.detail
+    # DP finished, SDP not run: DP's time is shown, but the claim is about SDP
+    r = quadrotor9_times({"fig4": d[(d.task != "quadrotor-9") | (d.method == "dp")]})
+    assert r.verdict == "not run" and "from SDP n/a, from DP 9 s" in r.ours
 
 
 def _fig1_rows():

@@ -36,6 +36,7 @@ def test_loop_writes_every_iteration(loop_dir):
             assert (loop_dir / f"it{k}" / name).is_file(), f"it{k}/{name}"
     summary = pd.read_csv(loop_dir / "summary.csv")
     assert list(summary.iteration) == [0, 1] and (summary.n == 3).all() and (summary.t_a == 4).all()
+    assert (summary.n_algo == 2).all()          # what "finished" means for the report and the ledger
     assert not [c for c in summary if is_timing_column(c)]   # hashed by DVC: no clock readings
     # iteration 0 collects from the naive guess, iteration 1 warm-starts TO with iteration 0's policy
     _, m0 = load_npz(loop_dir / "it0" / "data.npz", kind="dataset")

@@ -256,3 +256,30 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
         ("pendulum-sdp-n1-s0", 1, 2000), ("pendulum-sdp-n3-s0", 1, 2000), ("pendulum-sdp-n1-s1", 1, 2000),
         ("pendulum-sdp-n3-s1", 1, 2000)) for it in range(n)]
     assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == []
+
+
+def test_loop_rows_without_n_algo_get_it_from_their_loop_config(tmp_path):
+    """Rows of loops evaluated before loops recorded ``n_algo`` read it from ``<run>/loop_config.json`` (the
+    evaluation's folder is ``<run>/it<k>/eval``), so a run partway is not taken for a finished one; rows of no
+    loop stay NaN, and a corrupt config is one clear error."""
+    import json
+
+    import numpy as np
+    import pandas as pd
+    import pytest
+
+    from sdp_cli.errors import SdpError
+    from sdp_cli.report.runs import _loop_n_algo
+
+    run = tmp_path / "quadrotor-9-dp-n30-s0"
+    (run / "it2" / "eval").mkdir(parents=True)
+    (run / "loop_config.json").write_text(json.dumps({"task": "quadrotor-9", "n_algo": 5}))
+    (tmp_path / "lone" / "eval").mkdir(parents=True)
+    old = pd.DataFrame({"iteration": [2, 0], "source": [str(run / "it2" / "eval"), str(tmp_path / "lone" / "eval")]})
+    got = _loop_n_algo(old)
+    assert got.n_algo.iloc[0] == 5 and np.isnan(got.n_algo.iloc[1])
+    new = old.assign(n_algo=[3.0, 1.0])
+    pd.testing.assert_frame_equal(_loop_n_algo(new), new)          # rows that record it are kept as they are
+    (run / "loop_config.json").write_text("{")
+    with pytest.raises(SdpError, match="corrupt loop config"):
+        _loop_n_algo(old)

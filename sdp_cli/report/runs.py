@@ -10,6 +10,7 @@ the report opens only those files. An ``eval.csv`` without a manifest is not rea
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -95,14 +96,34 @@ def _terminal_cost(rollouts: str) -> dict:
     return terminal_cost_mean(*load_npz(rollouts, kind="rollout"))
 
 
+def _loop_n_algo(df: pd.DataFrame) -> pd.DataFrame:
+    """``n_algo`` of loop rows evaluated before loops recorded it, from the run's ``loop_config.json``
+    (``<run>/it<k>/eval/`` is the evaluation's folder); NaN for rows of no loop."""
+    if "source" not in df or ("n_algo" in df and df.n_algo.notna().all()):
+        return df
+    df = df.copy()
+    if "n_algo" not in df:
+        df["n_algo"] = np.nan
+    for i in df.index[df.n_algo.isna()]:
+        up = Path(str(df.at[i, "source"])).parents
+        cfg = up[1] / "loop_config.json" if len(up) > 1 else None
+        if cfg is not None and cfg.is_file():
+            try:
+                df.at[i, "n_algo"] = float(json.loads(cfg.read_text())["n_algo"])
+            except (ValueError, KeyError, TypeError) as e:
+                raise SdpError(f"corrupt loop config {cfg}: {e}") from None
+    return df
+
+
 def _backfill_older_rows(df: pd.DataFrame) -> pd.DataFrame:
     """Columns that older evaluations lack or computed differently, from the artifacts they name:
     ``policy_wins`` / ``policy_ties`` (ties used to count as wins) from the refine, the per-group
-    violation rates (``obstacles_violation_rate``, ...) and ``terminal_cost_mean`` from the rollouts."""
+    violation rates (``obstacles_violation_rate``, ...) and ``terminal_cost_mean`` from the rollouts, a loop's
+    ``n_algo`` from its config."""
     if "policy_wins" in df:
         df = _backfill(df, "policy_ties", "refined", _policy_outcomes, stale=("policy_wins", "policy_ties"))
     df = _backfill(df, "controls_violation_rate", "rollouts", _violation_groups)
-    return _backfill(df, "terminal_cost_mean", "rollouts", _terminal_cost)
+    return _loop_n_algo(_backfill(df, "terminal_cost_mean", "rollouts", _terminal_cost))
 
 
 def mean_ci(values: pd.Series) -> tuple[float, float, int]:

@@ -49,17 +49,32 @@ def combine(verdicts: list[str]) -> str:
     return "not reproduced" if all(v == "not reproduced" for v in verdicts) else "partly"
 
 
+def _final_iteration(d: pd.DataFrame) -> pd.Series:
+    """Per task, its loops' final iteration: the last one its runs' ``n_algo`` asks for where the rows
+    record it (a loop's rows do; older ones get it from the run's ``loop_config.json``), else the last
+    one any of its runs reached."""
+    reached = d.groupby("task").iteration.max()
+    if "n_algo" not in d:
+        return reached
+    asked = (d.groupby("task").n_algo.max() - 1).reindex(reached.index)
+    return pd.concat([reached, asked], axis=1).max(axis=1)
+
+
 def _last(d: pd.DataFrame) -> pd.DataFrame:
     """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
-    and seed); a task's final iteration is the last one any of its runs reached."""
-    d = pd.concat([_loop_t_a(g) for _, g in d.groupby("task")]) if len(d) else d
-    return d[d.iteration == d.groupby("task").iteration.transform("max")]
+    and seed); a task's final iteration is :func:`_final_iteration`'s."""
+    if not len(d):
+        return d
+    d = pd.concat([_loop_t_a(g) for _, g in d.groupby("task")])
+    return d[d.iteration == d.task.map(_final_iteration(d))]
 
 
 def _unfinished(d: pd.DataFrame) -> str:
     """``"runs not finished (left out): ..."`` for runs that have not reached their task's final iteration."""
+    if not len(d):
+        return ""
     last = d.groupby(["task", "run"]).iteration.max()
-    final = d.groupby("task").iteration.max()
+    final = _final_iteration(d)
     todo = sorted(run for (task, run), it in last.items() if it < final[task])
     return f"runs not finished (left out): {', '.join(todo)}" if todo else ""
 
