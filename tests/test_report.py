@@ -283,3 +283,15 @@ def test_loop_rows_without_n_algo_get_it_from_their_loop_config(tmp_path):
     (run / "loop_config.json").write_text("{")
     with pytest.raises(SdpError, match="corrupt loop config"):
         _loop_n_algo(old)
+
+
+def test_trajectory_titles_say_where_a_solve_did_not_converge():
+    """The trajectory figure draws TO alone's last iterate where it failed: the panel must say so, and a
+    policy's line says when the refine from its rollout did not converge."""
+    import numpy as np
+
+    from sdp_cli.report.traj import _refine_note
+
+    f = {"inst_pol_converged": np.array([True, False])}
+    assert _refine_note(f, 0) == "" and _refine_note(f, 1) == ", refine not converged"
+    assert _refine_note({}, 1) == ""                       # an older refine without the record: nothing claimed

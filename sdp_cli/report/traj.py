@@ -42,6 +42,12 @@ def _shares(r: dict, meta: dict) -> str:
     return f"goal {np.mean(r['reached']):.0%}" + "".join(f", breaks {g} {v:.0%}" for g, v in rates.items())
 
 
+def _refine_note(f: dict, j: int) -> str:
+    """``", refine not converged"`` where TO from this policy's rollout did not converge on instance ``j``."""
+    ok = f.get("inst_pol_converged")
+    return ", refine not converged" if ok is not None and not bool(ok[j]) else ""
+
+
 def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
     """TO alone vs each method's policy and refined solution on a few test instances (the best
     run of each method at the last iteration; the test instances are the same for all).
@@ -70,7 +76,8 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     ix, iy = (0, 1) if top else (1, 2)
     plt = _plt()
     n_show = min(n_show, len(r0["X"]))
-    n_lines = len(runs) + 1                      # each panel's and the figure's title: one line per method
+    base_ok = np.asarray(f0["inst_base_converged"], bool) if "inst_base_converged" in f0 else None
+    n_lines = len(runs) + 2                      # each panel's title: instance, TO alone, one line per method
     n_leg = -(-(2 * len(runs) + 3) // 6)         # legend rows (6 columns)
     height = 3.0 + 2 * 0.16 * n_lines + 0.22 * n_leg
     fig, axes = plt.subplots(1, n_show, figsize=(3.3 * max(n_show, 2), height), squeeze=False)
@@ -83,7 +90,9 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
             if np.all(np.isfinite(X)):
                 P = trajectory_points(task, X)
                 ax.plot(P[:, ix], P[:, iy], label=label, **kw)
-        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7)
+        # TO alone that did not converge is drawn dotted: its last iterate, not a solution
+        failed = base_ok is not None and not base_ok[j]
+        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7, ls=":" if failed else "-")
         for m, (r, f, _, _) in runs.items():
             draw(r["X"][j], f"{method_label(m)} policy", color=COLORS.get(m, "tab:orange", among=runs), lw=1.4)
             draw(f["inst_pol_X"][j], f"refined from {method_label(m)}", color=COLORS.get(m, "tab:orange", among=runs),
@@ -93,8 +102,10 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
         g = goal_point(task, xi)
         if g is not None:
             ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
-        ax.set_title("\n".join([f"test instance {j}"] + [f"{method_label(m)}: {_outcome(task, r, j)}"
-                                                          for m, (r, *_) in runs.items()]), fontsize=8)
+        to_line = [] if base_ok is None else [f"TO alone: {'not converged (dotted)' if failed else 'converged'}"]
+        ax.set_title("\n".join([f"test instance {j}"] + to_line + [
+            f"{method_label(m)}: {_outcome(task, r, j)}" + _refine_note(f, j) for m, (r, f, *_) in runs.items()]),
+            fontsize=8)
         ax.set_xlabel("x (m)" if top else "y (m)")
         ax.set_ylabel("y (m)" if top else "z (m)")
         ax.set_aspect("equal", adjustable="datalim")
@@ -103,8 +114,9 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
     n = len(r0["X"])
     drawn = "instance 0" if n_show == 1 else f"instances 0-{n_show - 1}"
+    conv = "" if base_ok is None else f"; TO alone converged on {int(base_ok.sum())} of {n}"
     fig.suptitle("\n".join([f"{task_name}: TO alone vs policy vs refined ({what}); {drawn} of {n} drawn (the first, "
-                            f"not chosen)"] + [f"{method_label(m)} (its best run by success, {name}): over all {n}, {_shares(r, rmeta)}"
+                            f"not chosen){conv}"] + [f"{method_label(m)} (its best run by success, {name}): over all {n}, {_shares(r, rmeta)}"
                                                for m, (r, _, rmeta, name) in runs.items()]), fontsize=9)
     fig.tight_layout(rect=(0, (0.22 * n_leg + 0.1) / height, 1, 1))
     return [_save_fig(fig, out / f"traj_{task_name}.png")]
