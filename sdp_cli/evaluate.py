@@ -65,6 +65,13 @@ def _timed(arrays: dict, timing: dict, key: str, n: int) -> np.ndarray:
     return v if v.shape == (n,) else np.full(n, np.nan)
 
 
+def _rollout_task(meta: dict):
+    """The task a rollout artifact names, to recompute what older rollouts did not store."""
+    from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
+
+    return get_task(meta.get("task"), **(meta.get("task_options") or {}))
+
+
 def group_violation_rates(r: dict, meta: dict) -> dict[str, float]:
     """``<group>_violation_rate`` per constraint group (``controls``, ``floor_ceiling``, ``obstacles``, ...):
     the share of rollouts breaking that group beyond :data:`VIOLATION_TOL` (diverged ones count as breaking).
@@ -72,10 +79,7 @@ def group_violation_rates(r: dict, meta: dict) -> dict[str, float]:
     recomputed from its ``X``, ``U`` and ``xi`` with the task it names."""
     arrays = {k[len("violation_"):]: np.asarray(v, float) for k, v in r.items() if k.startswith("violation_")}
     if not arrays and all(k in r for k in ("X", "U", "xi")):
-        from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
-
-        task = get_task(meta.get("task"), **(meta.get("task_options") or {}))
-        arrays = task.violations_per_instance(r["X"], r["U"], r["xi"])
+        arrays = _rollout_task(meta).violations_per_instance(r["X"], r["U"], r["xi"])
     return {f"{g}_violation_rate": float(np.mean(~(v <= VIOLATION_TOL))) for g, v in arrays.items()}
 
 
@@ -87,10 +91,7 @@ def terminal_cost_mean(r: dict, meta: dict) -> dict[str, float]:
     if "terminal_cost" in r:
         v = np.asarray(r["terminal_cost"], float)
     elif all(k in r for k in ("X", "xi")):
-        from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
-
-        task = get_task(meta.get("task"), **(meta.get("task_options") or {}))
-        v = task.terminal_costs(r["X"], r["xi"])
+        v = _rollout_task(meta).terminal_costs(r["X"], r["xi"])
     else:
         return {}
     return {"terminal_cost_mean": float(np.mean(v)) if np.all(np.isfinite(v)) else float("inf")}

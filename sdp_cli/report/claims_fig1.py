@@ -47,18 +47,23 @@ def _fig1_final(res) -> pd.DataFrame:
     return d[d.epochs == d.groupby(["task", "method"]).epochs.transform("max")]
 
 
+def _cost_by_n(g: pd.DataFrame) -> pd.Series:
+    """Mean policy cost over seeds per n_traj, by increasing n_traj."""
+    return g.groupby("n_traj").policy_cost_mean.mean().sort_index()
+
+
 def _first_n(g: pd.DataFrame, to: float) -> float:
     """Smallest n_traj from which the mean policy cost over seeds stays within 10% of TO alone, at it and at
     every larger n_traj run (inf: none). "Needs n trajectories" means n and more suffice: a small dataset that
     is within 10% by chance while larger ones are not does not count (see :func:`_first_within`)."""
-    by = g.groupby("n_traj").policy_cost_mean.mean().sort_index()
+    by = _cost_by_n(g)
     ok = (by <= 1.1 * to)[::-1].cummin()[::-1]     # within at n and at every larger n
     return float(ok[ok].index.min()) if ok.any() else float("inf")
 
 
 def _first_within(g: pd.DataFrame, to: float) -> float:
     """Smallest n_traj whose mean policy cost over seeds is within 10% of TO alone (inf: none)."""
-    by = g.groupby("n_traj").policy_cost_mean.mean()
+    by = _cost_by_n(g)
     ok = by[by <= 1.1 * to]
     return float(ok.index.min()) if len(ok) else float("inf")
 
@@ -73,7 +78,7 @@ def _n_text(g: pd.DataFrame, to: float) -> str:
 def _never_text(g: pd.DataFrame) -> str:
     """``"(over n_traj 2-4; lowest mean cost 15.3 at n_traj 4)"``: what "never" was judged on (a sweep still
     running has fewer dataset sizes) and how close it came."""
-    by = g.groupby("n_traj").policy_cost_mean.mean().sort_index()
+    by = _cost_by_n(g)
     span = f"{by.index[0]:g}-{by.index[-1]:g}" if len(by) > 1 else f"{by.index[0]:g}"
     return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g})"
 

@@ -98,18 +98,18 @@ def _terminal_cost(rollouts: str) -> dict:
 
 def _loop_n_algo(df: pd.DataFrame) -> pd.DataFrame:
     """``n_algo`` of loop rows evaluated before loops recorded it, from the run's ``loop_config.json``
-    (``<run>/it<k>/eval/`` is the evaluation's folder); NaN for rows of no loop."""
+    (``<run>/it<k>/eval/`` is the evaluation's folder), read once per evaluation; NaN for rows of no loop."""
     if "source" not in df or ("n_algo" in df and df.n_algo.notna().all()):
         return df
     df = df.copy()
     if "n_algo" not in df:
         df["n_algo"] = np.nan
-    for i in df.index[df.n_algo.isna()]:
-        up = Path(str(df.at[i, "source"])).parents
+    for source, idx in df[df.n_algo.isna()].groupby("source").groups.items():
+        up = Path(str(source)).parents
         cfg = up[1] / "loop_config.json" if len(up) > 1 else None
         if cfg is not None and cfg.is_file():
             try:
-                df.at[i, "n_algo"] = float(json.loads(cfg.read_text())["n_algo"])
+                df.loc[idx, "n_algo"] = float(json.loads(cfg.read_text())["n_algo"])
             except (ValueError, KeyError, TypeError) as e:
                 raise SdpError(f"corrupt loop config {cfg}: {e}") from None
     return df
