@@ -357,6 +357,7 @@ def report_cmd(
     experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the last iteration's mean costs and success per task and method as JSON (DVC metrics).")] = None,
     ledger: Annotated[Optional[Path], typer.Option(help="Then (re)write the claims ledger, e.g. results/PAPER.md, from the reports in its folder (*/all_runs.csv, bench/*.csv) and its claims.yaml.")] = None,
+    keep_missing: Annotated[bool, typer.Option("--keep-missing", help="Extend the report already in --out: keep its rows (and per-run tables) of runs that have no evaluation under --runs, e.g. run folders made on another machine; --runs may then hold no evaluation yet.")] = False,
 ) -> None:
     """Write the paper's tables and figures from whatever runs exist, and the claims ledger."""
     if runs is None and ledger is None:
@@ -364,7 +365,8 @@ def report_cmd(
     if runs is not None:
         from sdp_cli.report.make import make_report
 
-        files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics)
+        files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics,
+                            keep_missing=keep_missing)
         typer.echo(f"wrote {len(files)} files to {out}")
     if ledger is not None:
         from sdp_cli.report.ledger import write_ledger

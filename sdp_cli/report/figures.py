@@ -297,10 +297,11 @@ def _named(path) -> Path | None:
     return Path(path) if isinstance(path, str) and path and Path(path).is_file() else None
 
 
-def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
     guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess);
-    one panel per TO baseline the runs evaluated (multiple shooting; single shooting)."""
+    one panel per TO baseline the runs evaluated (multiple shooting; single shooting). ``carried``
+    (:class:`~sdp_cli.report.carry.Carried`): the earlier report's rows of runs whose files are gone."""
     d = df[df.task == task]
     if d.empty:
         return []
@@ -316,11 +317,14 @@ def fig2b(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             if pre + "pol_iterations" not in a:
                 continue
             pi, bi = a[pre + "pol_iterations"], a[pre + "base_iterations"]
-            rows += [{"solver": solver, "method": r.method, "guess": "policy", "iterations": int(v)} for v in pi[pi >= 0]]
-            rows += [{"solver": solver, "method": r.method, "guess": "naive", "iterations": int(v)} for v in bi[bi >= 0]]
-    if not rows:
+            rows += [{"solver": solver, "method": r.method, "guess": "policy", "iterations": int(v), "run": r.run}
+                     for v in pi[pi >= 0]]
+            rows += [{"solver": solver, "method": r.method, "guess": "naive", "iterations": int(v), "run": r.run}
+                     for v in bi[bi >= 0]]
+    old = carried.rows(f"fig2b_{task}.csv", task, last[last.run.isin(carried.runs)].method) if carried else pd.DataFrame()
+    if not rows and old.empty:
         return []
-    tab = pd.DataFrame(rows)
+    tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)
     plt = _plt()
     solvers = [s for s in ("multiple shooting", "single shooting") if s in set(tab.solver)]
     fig, axes = plt.subplots(1, len(solvers), figsize=(6 * len(solvers), 4), squeeze=False)
@@ -378,11 +382,16 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]
 
 
-def timing(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
-    """``timing_<task>``: collection, training and evaluation seconds per run and iteration."""
+def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
+    """``timing_<task>``: collection, training and evaluation seconds per run and iteration (``carried``:
+    the earlier report's rows of runs whose files are gone, :class:`~sdp_cli.report.carry.Carried`)."""
     from sdp_cli.report.timing import timing_table
 
     tab = timing_table(df, task)
+    d = df[df.task == task]
+    old = carried.rows(f"timing_{task}.csv", task, d[d.run.isin(carried.runs)].method) if carried else pd.DataFrame()
+    if not old.empty:
+        tab = pd.concat([tab, old], ignore_index=True).sort_values(["method", "train_seed", "iteration"], kind="stable")
     if tab.empty:
         return []
     return [_save_csv(tab, out / f"timing_{task}.csv"),

@@ -32,6 +32,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
+from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
 from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
                                     table2c, timing)
@@ -54,15 +55,21 @@ def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str
 
 
 def make_report(runs: str | Path, out: str | Path, experiment: str | None = None,
-                log=lambda s: None, metrics: str | Path | None = None) -> list[Path]:
+                log=lambda s: None, metrics: str | Path | None = None, keep_missing: bool = False) -> list[Path]:
     """Write every table and figure the available runs allow; returns the written paths.
     ``metrics``: also write the last iteration's means per task and method there (JSON, DVC metrics).
 
     For the experiment that ``params.yaml`` selects, only its current runs are reported: folders of
     runs the experiment file no longer has (e.g. another n_traj sweep), which the persistent DVC
-    output keeps, are ignored (and counted in the log)."""
+    output keeps, are ignored (and counted in the log).
+
+    ``keep_missing``: extend the report already in ``out`` instead of replacing it: the rows (and per-run
+    tables) of runs with no evaluation under ``runs`` are kept from it (:mod:`sdp_cli.report.carry`)."""
     runs, out = Path(runs), Path(out)
-    df = load_runs(runs, log=log)
+    df = load_runs(runs, log=log, allow_empty=keep_missing)
+    kept: frozenset[str] = frozenset()
+    if keep_missing:
+        df, kept = carry_over(df, out, log)
     current = current_runs(experiment or runs.name)
     if current is not None:
         keep = df.run.isin(current)
@@ -82,19 +89,25 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         written += ablation_k(df, task, out)
     fdf = method_variants(df)
     bdf = largest_budget(fdf)
+    carried = Carried(out, kept, fresh_methods(fdf, kept))
+    kept_traj = []
     for task in sorted(fdf.task.dropna().unique()):
-        for fn in (fig1, timing):                            # every dataset size and epoch count
-            written += fn(fdf, task, out)
-        for fn in (fig2a, fig2b, table2c, trajectories):     # one budget per method
-            written += fn(bdf, task, out)
+        written += fig1(fdf, task, out)                      # every dataset size and epoch count
+        written += timing(fdf, task, out, carried)
+        written += fig2a(bdf, task, out) + fig2b(bdf, task, out, carried) + table2c(bdf, task, out)   # one budget per method
+        if carried.keeps_traj(task, bdf[bdf.task == task].method) and (out / f"traj_{task}.png").is_file():
+            written.append(out / f"traj_{task}.png")
+            kept_traj.append(task)
+        else:
+            written += trajectories(bdf, task, out)
         written += loop_costs(bdf, task, out, _loop_t_a(bdf[bdf.task == task]))
-    written += training_curves(df, out)
+    written += training_curves(df, out) + [p for r in sorted(kept) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
     if metrics is not None:
         from sdp_cli.report.curves import metrics_summary, write_metrics
 
         rows = pd.concat([_loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
         write_metrics(metrics_summary(rows), Path(metrics))
-    written.append(_index(df, runs, out, experiment, written))
+    written.append(_index(df, runs, out, experiment, written, carried_lines(df, carried, kept_traj)))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
         written.append(_top_index(out.resolve().parent))
@@ -175,7 +188,8 @@ def _top_index(results: Path) -> Path:
     return atomic_write_bytes(results / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
 
 
-def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path]) -> Path:
+def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
+           carried: list[str] = ()) -> Path:
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
         n_traj=("n_traj", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
@@ -187,12 +201,13 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     source = (f"from the experiment `{name}` (see `pipelines/{name}.yaml`)." if spec.is_file()
               else f"from the runs in `{runs}` (no `pipelines/{name}.yaml`: e.g. `sdp loop` runs).")
     lines = [f"# Results: {name}", "",
-             f"Produced by `sdp report --runs {runs} --out {out}` with the code of commit `{code_revision()}`", source, "",
+             f"Produced by `sdp report --runs {runs} --out {out}{' --keep-missing' if carried else ''}` with the code of commit `{code_revision()}`", source, "",
              "## Budgets (seeds, dataset sizes, epochs, loop iterations, test instances)", "",
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
     if spec.is_file():
         lines += coverage_lines(df, name)
+    lines += list(carried)
     revs = run_revisions(df)
     if not revs.empty:
         lines += ["", "## Code revisions of the runs (from the evaluation manifests)", "",

@@ -26,8 +26,9 @@ from sdp_cli.evaluate import (ARTIFACT_KEYS, MANIFEST_SUFFIX, group_violation_ra
 PATH_COLUMNS = ("source", *ARTIFACT_KEYS)
 
 
-def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
-    """All evaluation rows under ``root`` that a manifest names (``SdpError`` if there are none)."""
+def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -> pd.DataFrame | None:
+    """All evaluation rows under ``root`` that a manifest names (``SdpError`` if there are none, or None
+    with ``allow_empty``)."""
     root = Path(root)
     if not root.is_dir():
         raise SdpError(f"runs folder not found: {root}")
@@ -54,6 +55,8 @@ def load_runs(root: str | Path, log=lambda s: None) -> pd.DataFrame:
         log(f"ignoring {unnamed} eval.csv file(s) under {root} without a manifest (written before manifests "
             "existed, or not by sdp): re-run their evaluation to include them")
     if not frames:
+        if allow_empty:
+            return None
         raise SdpError(f"no evaluation results (eval.csv with its manifest) under {root}; run `sdp loop` or "
                        "`dvc repro` first")
     df = _backfill_older_rows(pd.concat(frames, ignore_index=True))

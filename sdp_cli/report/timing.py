@@ -69,7 +69,7 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
         solve = (_col(g, "refined_solve_time_mean", 0.0) * n * _col(g, "refined_solved_rate", 1.0)
                  + _col(g, "to_alone_solve_time_mean", 0.0) * n)
         c_solve, c_wall = _collect_seconds(g["data"].iloc[0])
-        row = {"method": method, "train_seed": int(seed), "iteration": int(it),
+        row = {"method": method, "run": g.run.iloc[0], "train_seed": int(seed), "iteration": int(it),
                "collect_solve_s": c_solve, "collect_wall_s": c_wall, "train_steps": steps, "train_s": train_s,
                "train_s_per_step": train_s / steps if steps else np.nan,
                "eval_t_a_values": ",".join(str(int(t)) for t in sorted(g.t_a.dropna().unique())),

@@ -1,0 +1,109 @@
+"""Reports that outlive their run folders: ``sdp report --keep-missing``.
+
+A report is written from run folders, but run folders are large and live on the machine that made them
+(``/work/sweeps/...``, a cluster's scratch): once they are gone, a report over the runs still there would
+drop every other run. With ``--keep-missing`` the report extends the one already in its output folder:
+
+- ``all_runs.csv``: the earlier report's rows of every run that has no evaluation under ``--runs``
+  ("carried" runs) are kept as they are, beside the rows read from the run folders (which replace
+  the earlier rows of their runs);
+- tables drawn from a run's files (``fig2b_<task>.csv``: TO iterations per instance; ``timing_<task>.csv``;
+  ``curves/<run>-it<k>.csv``) keep the earlier report's rows of carried runs: by their ``run`` column,
+  or, in tables written before they had one, the rows of a method none of whose runs is under ``--runs``
+  (exactly the earlier report's rows of that method, since the earlier report had no other runs of it);
+- ``traj_<task>.png`` needs the rollouts themselves: it is redrawn only when every method it draws has
+  its files here, and otherwise kept from the earlier report (the README says which).
+
+Figures, the ledger and the metrics use the carried rows like any other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+from sdp_cli.errors import SdpError
+from sdp_cli.report.runs import PATH_COLUMNS
+
+
+@dataclass(frozen=True)
+class Carried:
+    """The earlier report in ``out`` and the runs taken from it (none: a plain report)."""
+
+    out: Path
+    runs: frozenset[str] = frozenset()
+    #: per (task, method as drawn): whether some run of it was read from a run folder
+    fresh: frozenset[tuple[str, str]] = field(default_factory=frozenset)
+
+    def rows(self, name: str, task: str, methods: pd.Series) -> pd.DataFrame:
+        """The earlier report's ``name`` (a CSV in ``out``) rows that belong to carried runs of ``task``:
+        by ``run``, and rows with no run (tables written before they had the column) of the methods in
+        ``methods`` that have no fresh run."""
+        path = self.out / name
+        if not self.runs or not path.is_file():
+            return pd.DataFrame()
+        old = pd.read_csv(path)
+        if "method" not in old:
+            return pd.DataFrame()
+        stale = {m for m in set(methods) if (task, m) not in self.fresh}
+        by_run = old.run.isin(self.runs) if "run" in old else pd.Series(False, index=old.index)
+        no_run = old.run.isna() if "run" in old else pd.Series(True, index=old.index)
+        return old[by_run | (no_run & old.method.isin(stale))]
+
+    def keeps_traj(self, task: str, methods: pd.Series) -> bool:
+        """Whether ``traj_<task>.png`` is kept from the earlier report: some method it would draw has
+        no run with files here."""
+        return bool(self.runs) and any((task, m) not in self.fresh for m in set(methods))
+
+
+def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:
+    """``df`` (rows read from run folders, or None: none) extended by the rows of ``out/all_runs.csv``
+    whose runs ``df`` does not have; returns the table and the carried runs."""
+    path = out / "all_runs.csv"
+    if not path.is_file():
+        raise SdpError(f"--keep-missing: no earlier report to keep rows from ({path} not found)")
+    try:
+        old = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise SdpError(f"corrupt earlier report {path}: {e}") from None
+    if "run" not in old or "task" not in old:
+        raise SdpError(f"corrupt earlier report {path}: no run/task columns")
+    have = set() if df is None else set(df.run)
+    kept = old[~old.run.isin(have)]
+    runs = frozenset(kept.run.astype(str))
+    if runs:
+        log(f"keeping {len(kept)} row(s) of {len(runs)} run(s) from {path} (their run folders are not under --runs)")
+    # by run (each run's rows in their order): the same table whichever runs are carried
+    merged = (kept if df is None else pd.concat([df, kept], ignore_index=True)).sort_values("run", kind="stable")
+    merged = merged.reset_index(drop=True)
+    for col in (c for c in PATH_COLUMNS if c not in merged):      # carried rows name no files
+        merged[col] = None
+    if "train_seed" in merged:
+        merged["train_seed"] = merged["train_seed"].fillna(0).astype(int)
+    if merged.empty:
+        raise SdpError(f"nothing to report: no evaluation under --runs and no rows in {path}")
+    return merged, runs
+
+
+def fresh_methods(fdf: pd.DataFrame, carried: frozenset[str]) -> frozenset[tuple[str, str]]:
+    """(task, method as drawn) pairs with at least one run read from a run folder."""
+    d = fdf[~fdf.run.isin(carried)]
+    return frozenset(zip(d.task, d.method))
+
+
+def carried_lines(df: pd.DataFrame, carried: Carried, kept_traj: list[str]) -> list[str]:
+    """README lines: which runs came from the earlier report, which figures were kept from it."""
+    if not carried.runs:
+        return []
+    d = df[df.run.isin(carried.runs)]
+    lines = ["", "## Runs kept from the earlier report (`--keep-missing`)", "",
+             f"{len(carried.runs)} run(s) have no run folder under --runs; their rows (and their per-run tables) "
+             "are the earlier report's, unchanged.", "", "| task | method | runs |", "|---|---|---|"]
+    for (task, method), g in d.groupby(["task", "method"]):
+        lines.append(f"| {task} | {method} | {g.run.nunique()} |")
+    if kept_traj:
+        lines += ["", "Kept as drawn by the earlier report (some method they draw has no rollouts here): "
+                  + ", ".join(f"`traj_{t}.png`" for t in kept_traj) + "."]
+    return lines

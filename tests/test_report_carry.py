@@ -1,0 +1,107 @@
+"""`sdp report --keep-missing`: a report extended by new runs keeps the earlier report's runs whose run
+folders are gone (another machine), and regenerates the same tables from them."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from sdp_cli.cli import app
+from sdp_cli.errors import SdpError
+from sdp_cli.evaluate import write_evaluation
+from sdp_cli.report.carry import Carried
+from sdp_cli.report.make import make_report
+
+ROW = {"task": "pendulum", "method": "sdp", "n_traj": 3, "t_a": 8, "k_rollout": 5, "train_seed": 0, "epochs": 700,
+       "test_seed": 0, "n": 20, "policy_cost_median": 0.0, "success_rate": 0.5, "rollout_time": 1.0,
+       "diverged": 0, "controls_violation_rate": 0.0, "terminal_cost_mean": 0.0}
+NO_FILES = {"rollouts": None, "refined": None, "policy": None, "data": None}
+
+
+def _evaluate(root, run, cost, method="sdp", seed=0):
+    d = root / run / "it0" / "eval"
+    d.mkdir(parents=True, exist_ok=True)
+    write_evaluation([{**ROW, "method": method, "train_seed": seed, "run": run, "iteration": 0,
+                       "policy_cost_mean": cost}], d / "eval.csv", [NO_FILES])
+
+
+@pytest.fixture
+def two_runs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)      # no params.yaml / pipelines here: every run under --runs is reported
+    runs, out = tmp_path / "runs", tmp_path / "results" / "exp"
+    for run, cost, method, seed in (("a-dp-s0", 30.0, "dp", 0), ("b-sdp-s0", 10.0, "sdp", 0), ("c-sdp-s1", 12.0, "sdp", 1)):
+        _evaluate(runs, run, cost, method, seed)
+    make_report(runs, out, "exp")
+    return runs, out
+
+
+def test_runs_whose_folders_are_gone_keep_their_rows(two_runs):
+    import shutil
+
+    runs, out = two_runs
+    before = (out / "all_runs.csv").read_bytes()
+    shutil.rmtree(runs / "a-dp-s0")
+    logs = []
+    make_report(runs, out, "exp", log=logs.append, keep_missing=True)
+    assert (out / "all_runs.csv").read_bytes() == before          # same table, whichever runs are carried
+    assert any("keeping 1 row(s) of 1 run(s)" in s for s in logs)
+    readme = (out / "README.md").read_text()
+    assert "--keep-missing" in readme and "| pendulum | dp | 1 |" in readme
+    assert "fig1_pendulum.png" in readme                          # the figure still draws dp from the kept row
+    assert "dp" in set(pd.read_csv(out / "fig1_pendulum.csv").method)
+    # a run folder that is here replaces its earlier rows
+    _evaluate(runs, "b-sdp-s0", 5.0)
+    make_report(runs, out, "exp", keep_missing=True)
+    rows = pd.read_csv(out / "all_runs.csv").set_index("run").policy_cost_mean
+    assert rows.to_dict() == {"a-dp-s0": 30.0, "b-sdp-s0": 5.0, "c-sdp-s1": 12.0}
+    # nothing under --runs at all: the report is regenerated from its own table
+    shutil.rmtree(runs)
+    runs.mkdir()
+    make_report(runs, out, "exp", keep_missing=True)
+    assert pd.read_csv(out / "all_runs.csv").set_index("run").policy_cost_mean.to_dict() == rows.to_dict()
+    # without --keep-missing the report is of what is under --runs only
+    _evaluate(runs, "c-sdp-s1", 12.0, seed=1)
+    make_report(runs, out, "exp")
+    assert list(pd.read_csv(out / "all_runs.csv").run) == ["c-sdp-s1"]
+
+
+def test_per_run_files_of_kept_runs_stay(two_runs):
+    """Training curves are per-run files the report writes from a run's folder: a kept run's stay, a
+    file of a run the report no longer has goes."""
+    import shutil
+
+    runs, out = two_runs
+    (out / "curves").mkdir()
+    for run in ("a-dp-s0", "gone-s0"):
+        (out / "curves" / f"{run}-it0.csv").write_text("step,loss\n1,0.5\n")
+    shutil.rmtree(runs / "a-dp-s0")
+    make_report(runs, out, "exp", keep_missing=True)
+    assert sorted(p.name for p in (out / "curves").iterdir()) == ["a-dp-s0-it0.csv"]
+
+
+def test_earlier_tables_give_the_rows_of_kept_runs(tmp_path):
+    """By run where the table has the column; in tables from before it, the rows of a method with no
+    run read from a folder (exactly the earlier report's rows of it), never of a method with one."""
+    fresh = frozenset({("ur5", "sdp")})
+    c = Carried(tmp_path, frozenset({"dp-n32", "sdp-n8"}), fresh)
+    pd.DataFrame({"method": ["dp", "dp", "sdp", "pddp"], "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "old.csv", index=False)
+    assert list(c.rows("old.csv", "ur5", pd.Series(["dp", "sdp"])).iterations) == [1, 2]
+    pd.DataFrame({"method": ["dp", "sdp", "sdp", "dp"], "run": ["dp-n32", "sdp-n8", "sdp-n32", None],
+                  "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "new.csv", index=False)
+    assert list(c.rows("new.csv", "ur5", pd.Series(["dp"])).iterations) == [1, 2, 4]
+    assert c.rows("missing.csv", "ur5", pd.Series(["dp"])).empty
+    assert c.keeps_traj("ur5", pd.Series(["sdp", "dp"])) and not c.keeps_traj("ur5", pd.Series(["sdp"]))
+    assert not Carried(tmp_path).keeps_traj("ur5", pd.Series(["dp"]))      # a plain report redraws
+
+
+def test_keep_missing_without_an_earlier_report_is_one_clear_error(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").mkdir()
+    with pytest.raises(SdpError, match="no earlier report"):
+        make_report(tmp_path / "runs", tmp_path / "out", "exp", keep_missing=True)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "all_runs.csv").write_text("task,method\npendulum,sdp\n")
+    r = CliRunner().invoke(app, ["report", "--runs", "runs", "--out", "out", "--keep-missing"])
+    assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert "no run/task columns" in r.output
