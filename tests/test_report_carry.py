@@ -55,6 +55,11 @@ def test_runs_whose_folders_are_gone_keep_their_rows(two_runs):
     make_report(runs, out, "exp", keep_missing=True)
     rows = pd.read_csv(out / "all_runs.csv").set_index("run").policy_cost_mean
     assert rows.to_dict() == {"a-dp-s0": 30.0, "b-sdp-s0": 5.0, "c-sdp-s1": 12.0}
+    # the earlier table's column order is kept (new runs add rows, not a reshuffle of older columns)
+    table = pd.read_csv(out / "all_runs.csv")
+    table[table.columns[::-1]].to_csv(out / "all_runs.csv", index=False)
+    make_report(runs, out, "exp", keep_missing=True)
+    assert list(pd.read_csv(out / "all_runs.csv").columns) == list(table.columns[::-1])
     # nothing under --runs at all: the report is regenerated from its own table
     shutil.rmtree(runs)
     runs.mkdir()

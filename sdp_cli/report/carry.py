@@ -77,7 +77,8 @@ def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[
         log(f"keeping {len(kept)} row(s) of {len(runs)} run(s) from {path} (their run folders are not under --runs)")
     # by run (each run's rows in their order): the same table whichever runs are carried
     merged = (kept if df is None else pd.concat([df, kept], ignore_index=True)).sort_values("run", kind="stable")
-    merged = merged.reset_index(drop=True)
+    # the earlier table's column order, columns it lacks after: a new run adds rows, not a reshuffle
+    merged = merged[list(old.columns) + [c for c in merged.columns if c not in old.columns]].reset_index(drop=True)
     for col in (c for c in PATH_COLUMNS if c not in merged):      # carried rows name no files
         merged[col] = None
     if "train_seed" in merged:
