@@ -181,7 +181,12 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         a.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
         a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("n_traj (trajectories in the dataset)")
-    ax.set_ylim(0, top * 1.05)
+    low = min(float(finite.min()) if len(finite) else top, to[0] if np.isfinite(to[0]) else top)
+    if low > 0 and top / low > 300:       # one outlier flattens the rest on a linear axis: log, as the spread
+        ax.set_yscale("log")
+        ax.set_ylim(low / 1.5, top * 1.05)
+    else:
+        ax.set_ylim(0, top * 1.05)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
     ax.set_title(f"Fig. 1 — sample efficiency, {task}", fontsize=10)
     ax2.set_ylim(-0.03, 1.03)
@@ -381,18 +386,3 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     return [_save_csv(tab, out / f"table2c_{task}.csv"),
             _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]
 
-
-def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
-    """``timing_<task>``: collection, training and evaluation seconds per run and iteration (``carried``:
-    the earlier report's rows of runs whose files are gone, :class:`~sdp_cli.report.carry.Carried`)."""
-    from sdp_cli.report.timing import timing_table
-
-    tab = timing_table(df, task)
-    d = df[df.task == task]
-    old = carried.rows(f"timing_{task}.csv", task, d[d.run.isin(carried.runs)].method) if carried else pd.DataFrame()
-    if not old.empty:
-        tab = pd.concat([tab, old], ignore_index=True).sort_values(["method", "train_seed", "iteration"], kind="stable")
-    if tab.empty:
-        return []
-    return [_save_csv(tab, out / f"timing_{task}.csv"),
-            _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]

@@ -35,7 +35,8 @@ from sdp_cli.errors import SdpError
 from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
 from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
-                                    table2c, timing)
+                                    table2c)
+from sdp_cli.report.timing import timing
 from sdp_cli.report.traj import trajectories
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 

@@ -79,3 +79,19 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
         row["total_s"] = float(np.nansum([collect, train_s, row["eval_rollout_s"], row["eval_solve_s"]]))
         rows.append(row)
     return pd.DataFrame(rows).sort_values(["method", "train_seed", "iteration"]) if rows else pd.DataFrame()
+
+
+def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
+    """``timing_<task>``: collection, training and evaluation seconds per run and iteration (``carried``:
+    the earlier report's rows of runs whose files are gone, :class:`~sdp_cli.report.carry.Carried`)."""
+    from sdp_cli.report.figures import _save_csv, _save_md
+
+    tab = timing_table(df, task)
+    d = df[df.task == task]
+    old = carried.rows(f"timing_{task}.csv", task, d[d.run.isin(carried.runs)].method) if carried else pd.DataFrame()
+    if not old.empty:
+        tab = pd.concat([tab, old], ignore_index=True).sort_values(["method", "train_seed", "iteration"], kind="stable")
+    if tab.empty:
+        return []
+    return [_save_csv(tab, out / f"timing_{task}.csv"),
+            _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]
