@@ -231,6 +231,10 @@ def test_fig1_claims_on_synthetic_rows():
     d.loc[(d.method == "dp") & (d.n_traj == 1), "policy_cost_mean"] = 10.5   # DP within at n_traj 1 only
     r = dp_needs_more({"fig1": d})
     assert "SDP from n_traj 4, DP from n_traj 32 (first within at n_traj 1) (8x)" in r.ours and r.verdict == "reproduced"
+    d.loc[(d.method == "dp") & (d.n_traj > 1), "policy_cost_mean"] = 30.0  # ... and never again: "never" says so inside
+    r = dp_needs_more({"fig1": d})
+    assert ("DP never (over n_traj 1-64; lowest mean cost 10.5 at n_traj 1; first within at n_traj 1, left again at "
+            "a larger one) (> 16x)") in r.ours
     assert mlp_unstable({"fig1": d[d.method != "pddp_s"]}).verdict == "not run"
     r = pendulum_torque({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "success 90%" in r.ours

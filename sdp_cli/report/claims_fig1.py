@@ -71,16 +71,19 @@ def _first_within(g: pd.DataFrame, to: float) -> float:
 def _n_text(g: pd.DataFrame, to: float) -> str:
     """``"from n_traj N"`` / ``"never"``, with the first n_traj within 10% where it differs."""
     n, first = _first_n(g, to), _first_within(g, to)
-    head = f"from n_traj {n:g}" if np.isfinite(n) else "never " + _never_text(g)
-    return head + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
+    if not np.isfinite(n):
+        return "never " + _never_text(g, first)
+    return f"from n_traj {n:g}" + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
 
 
-def _never_text(g: pd.DataFrame) -> str:
+def _never_text(g: pd.DataFrame, first: float = float("inf")) -> str:
     """``"(over n_traj 2-4; lowest mean cost 15.3 at n_traj 4)"``: what "never" was judged on (a sweep still
-    running has fewer dataset sizes) and how close it came."""
+    running has fewer dataset sizes) and how close it came; ``first``: a smaller n_traj within 10% that a
+    larger one left again."""
     by = _cost_by_n(g)
     span = f"{by.index[0]:g}-{by.index[-1]:g}" if len(by) > 1 else f"{by.index[0]:g}"
-    return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g})"
+    again = f"; first within at n_traj {first:g}, left again at a larger one" if np.isfinite(first) else ""
+    return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g}{again})"
 
 
 def dp_needs_more(res) -> Row:
