@@ -185,6 +185,15 @@ def test_quadrotor_rules_per_layout():
     assert r.verdict == "not run" and r.detail == "runs not finished (left out): quadrotor-9-dp-s0, quadrotor-9-dp-s1"
     r = quadrotor_precision({"fig4": part})
     assert "quadrotor-9" not in r.ours and "quadrotor-9-dp-s0" in r.detail
+    # both loops partway (SDP at 2, DP at 3 of 5): the times at iteration 2 are shown, never judged
+    part = d[(d.task != "quadrotor-9") | (d.iteration < np.where(d.method == "dp", 3, 2))].assign(
+        to_alone_converged_rate=0.6, refined_converged_rate=lambda x: np.where(x.method == "sdp", 0.9, 0.8))
+    part.loc[(part.task == "quadrotor-9") & (part.method == "dp") & (part.iteration == 2), "refined_solve_time_mean"] = 1.0
+    r = quadrotor9_times({"fig4": part})
+    assert r.verdict == "not run" and r.ours == (
+        "partway, not judged: iteration 2 of 5 (the latest both reached), multiple shooting: TO alone 16 s, "
+        "from SDP 7 s, from DP 9 s; converged: TO alone 60%, from SDP 90%, from DP 80%")
+    assert "quadrotor-9-sdp-s0" in r.detail
     # DP finished, SDP not run: DP's time is shown, but the claim is about SDP
     r = quadrotor9_times({"fig4": d[(d.task != "quadrotor-9") | (d.method == "dp")]})
     assert r.verdict == "not run" and "from SDP n/a, from DP 9 s" in r.ours

@@ -200,7 +200,8 @@ def quadrotor9_times(res) -> Row:
     q = last[last.task == "quadrotor-9"]
     unfinished = _unfinished(res["fig4"][res["fig4"].task == "quadrotor-9"])
     if q.empty:
-        return Row("", "not run", unfinished or "quadrotor-9 not run yet")
+        return Row(_q9_partway(res["fig4"][res["fig4"].task == "quadrotor-9"]), "not run",
+                   unfinished or "quadrotor-9 not run yet")
     parts, verdicts = [], []
     for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
         col = f"{pre}refined_solve_time_mean"
@@ -215,6 +216,24 @@ def quadrotor9_times(res) -> Row:
     verdict = combine(verdicts) if verdicts else "not run"   # DP alone says nothing of the claim
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
         unfinished, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline") if x))
+
+
+def _q9_partway(d: pd.DataFrame) -> str:
+    """Claim 10's quantities at the latest iteration both SDP and DP reached, for loops not finished:
+    shown beside the verdict "not run", never judged (the claim is about the final policies)."""
+    if d.empty or not {"sdp", "dp"} <= set(d.method):
+        return ""
+    d = _loop_t_a(d)
+    it = int(min(d[d.method == m].iteration.max() for m in ("sdp", "dp")))
+    g = d[d.iteration == it]
+    t = {m: g[g.method == m] for m in ("sdp", "dp")}
+    pct = lambda v: f"{100 * v:.0f}%"   # noqa: E731
+    n_algo = f" of {d.n_algo.max():g}" if "n_algo" in d and d.n_algo.notna().any() else ""
+    return (f"partway, not judged: iteration {it + 1}{n_algo} (the latest both reached), multiple shooting: "
+            f"TO alone {g.to_alone_solve_time_mean.mean():.3g} s, from SDP {t['sdp'].refined_solve_time_mean.mean():.3g} s, "
+            f"from DP {t['dp'].refined_solve_time_mean.mean():.3g} s; converged: TO alone "
+            f"{pct(g.to_alone_converged_rate.mean())}, from SDP {pct(t['sdp'].refined_converged_rate.mean())}, "
+            f"from DP {pct(t['dp'].refined_converged_rate.mean())}")
 
 
 def ur5_long_actions(res) -> Row:
