@@ -198,10 +198,10 @@ def quadrotor9_times(res) -> Row:
     """Claim 10: quadrotor-9, mean TO solve time from the naive guess vs from the final SDP's and DP's rollouts."""
     last = _last(res["fig4"])
     q = last[last.task == "quadrotor-9"]
-    unfinished = _unfinished(res["fig4"][res["fig4"].task == "quadrotor-9"])
+    runs = res["fig4"][res["fig4"].task == "quadrotor-9"]
+    unfinished = _unfinished(runs)
     if q.empty:
-        return Row(_q9_partway(res["fig4"][res["fig4"].task == "quadrotor-9"]), "not run",
-                   unfinished or "quadrotor-9 not run yet")
+        return Row(_q9_partway(runs), "not run", unfinished or "quadrotor-9 not run yet")
     parts, verdicts = [], []
     for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
         col = f"{pre}refined_solve_time_mean"

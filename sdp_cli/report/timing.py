@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_timing
+from sdp_cli.report.figures import _save_csv, _save_md
 
 
 def _policy_dir(policy) -> Path | None:
@@ -84,8 +85,6 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
 def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """``timing_<task>``: collection, training and evaluation seconds per run and iteration (``carried``:
     the earlier report's rows of runs whose files are gone, :class:`~sdp_cli.report.carry.Carried`)."""
-    from sdp_cli.report.figures import _save_csv, _save_md
-
     tab = timing_table(df, task)
     d = df[df.task == task]
     old = carried.rows(f"timing_{task}.csv", task, d[d.run.isin(carried.runs)].method) if carried else pd.DataFrame()
