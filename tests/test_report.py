@@ -295,3 +295,15 @@ def test_trajectory_titles_say_where_a_solve_did_not_converge():
     f = {"inst_pol_converged": np.array([True, False])}
     assert _refine_note(f, 0) == "" and _refine_note(f, 1) == ", refine not converged"
     assert _refine_note({}, 1) == ""                       # an older refine without the record: nothing claimed
+
+
+def test_trajectory_figure_draws_each_method_at_its_own_last_iteration():
+    """A loop partway (DP at iteration 3, SDP at 2) draws both methods, each at its last iteration; the rows of
+    earlier iterations are left out."""
+    import pandas as pd
+
+    from sdp_cli.report.traj import _last_iterations
+
+    d = pd.DataFrame({"method": ["sdp", "sdp", "sdp", "dp", "dp", "dp", "dp"], "iteration": [0, 1, 2, 0, 1, 2, 3]})
+    got = _last_iterations(d)
+    assert sorted(zip(got.method, got.iteration)) == [("dp", 3), ("sdp", 2)]

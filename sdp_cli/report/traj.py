@@ -24,6 +24,12 @@ def _best_rollout(d: pd.DataFrame):
     return None
 
 
+def _last_iterations(d: pd.DataFrame) -> pd.DataFrame:
+    """The rows of each method at the last iteration that method reached: a loop still running (one method
+    ahead of the other) draws both, each at its own last iteration."""
+    return d[d.iteration == d.groupby("method").iteration.transform("max")]
+
+
 def _outcome(task, r: dict, j: int) -> str:
     """Rollout ``j``'s outcome in a few words: "goal" / "miss", then the constraint groups it breaks
     (beyond the evaluation's tolerance), e.g. "miss, breaks obstacles"."""
@@ -50,7 +56,7 @@ def _refine_note(f: dict, j: int) -> str:
 
 def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
     """TO alone vs each method's policy and refined solution on a few test instances (the best
-    run of each method at the last iteration; the test instances are the same for all).
+    run of each method at the last iteration it reached; the test instances are the same for all).
 
     Pendulums: the tip in the y-z plane; UR5 and quadrotor seen from above (x-y) with the
     columns; start (blue dot) and goal (red star) of each instance. TO alone and refined come
@@ -60,7 +66,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     from sdp_cli.tasks import get_task
 
     d = _loop_t_a(df[df.task == task_name])
-    d = d[d.iteration == d.iteration.max()]
+    d = _last_iterations(d)
     found = {m: _best_rollout(g) for m, g in d.groupby("method")}
     found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}
     if not found:
