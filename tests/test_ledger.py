@@ -194,6 +194,14 @@ def test_quadrotor_rules_per_layout():
         "partway, not judged: iteration 2 of 5 (the latest both reached), multiple shooting: TO alone 16 s, "
         "from SDP 7 s, from DP 9 s; converged: TO alone 60%, from SDP 90%, from DP 80%")
     assert "quadrotor-9-sdp-s0" in r.detail
+    # DP finished, SDP partway (at 2 of 5): both at iteration 2, then DP's final times; claim 9 names SDP unfinished
+    part = d[(d.task != "quadrotor-9") | (d.method == "dp") | (d.iteration < 2)].assign(
+        to_alone_converged_rate=0.6, refined_converged_rate=0.9)
+    r = quadrotor9_times({"fig4": part})
+    assert r.verdict == "not run" and r.ours.startswith("partway, not judged: iteration 2 of 5 (the latest both reached)")
+    assert r.ours.endswith("; DP at its final iteration 5: TO alone 16 s, from DP 9 s") and "quadrotor-9-sdp-s0" in r.detail
+    assert "quadrotor-9: success DP 20%, constraint violated DP 30%, final distance DP 0.4 m; SDP not finished" in \
+        quadrotor_precision({"fig4": part}).ours
     # DP finished, SDP not run: DP's time is shown, but the claim is about SDP
     r = quadrotor9_times({"fig4": d[(d.task != "quadrotor-9") | (d.method == "dp")]})
     assert r.verdict == "not run" and "from SDP n/a, from DP 9 s" in r.ours

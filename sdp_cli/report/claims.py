@@ -180,7 +180,9 @@ def quadrotor_precision(res) -> Row:
             return " vs ".join(f"{m.upper()} {fmt(d[m])}" for m in ("sdp", "dp") if m in d)
         pct = lambda x: f"{100 * x:.0f}%"  # noqa: E731
         hit = f" (an obstacle: {vs(o, pct)})" if o else ""
-        missing = "".join(f"; {m.upper()} not run yet" for m in ("sdp", "dp") if m not in by)
+        started = set(res["fig4"][res["fig4"].task == task].method)      # a loop partway is named as such
+        missing = "".join(f"; {m.upper()} {'not finished' if m in started else 'not run yet'}"
+                          for m in ("sdp", "dp") if m not in by)
         parts.append(f"{task}: success {vs(s, pct)}, constraint violated {vs(v, pct)}{hit}, final distance "
                      f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")
         if not missing:
@@ -200,8 +202,13 @@ def quadrotor9_times(res) -> Row:
     q = last[last.task == "quadrotor-9"]
     runs = res["fig4"][res["fig4"].task == "quadrotor-9"]
     unfinished = _unfinished(runs)
-    if q.empty:
-        return Row(_q9_partway(runs), "not run", unfinished or "quadrotor-9 not run yet")
+    if q.empty or (not (q.method == "sdp").any() and (runs.method == "sdp").any()):
+        # SDP's loop partway: both at the latest iteration both reached, and DP's final times where it finished
+        dp = q[q.method == "dp"]
+        final = (f"; DP at its final iteration {dp.iteration.max() + 1:g}: TO alone "
+                 f"{dp.to_alone_solve_time_mean.mean():.3g} s, from DP {dp.refined_solve_time_mean.mean():.3g} s"
+                 if len(dp) else "")
+        return Row(_q9_partway(runs) + final, "not run", unfinished or "quadrotor-9 not run yet")
     parts, verdicts = [], []
     for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
         col = f"{pre}refined_solve_time_mean"
