@@ -307,3 +307,17 @@ def test_trajectory_figure_draws_each_method_at_its_own_last_iteration():
     d = pd.DataFrame({"method": ["sdp", "sdp", "sdp", "dp", "dp", "dp", "dp"], "iteration": [0, 1, 2, 0, 1, 2, 3]})
     got = _last_iterations(d)
     assert sorted(zip(got.method, got.iteration)) == [("dp", 3), ("sdp", 2)]
+
+
+def test_readme_names_the_seeds_each_code_revision_made():
+    """A sweep run over several sessions mixes revisions: the README says which seeds each one made."""
+    import pandas as pd
+
+    from sdp_cli.report.make import revision_lines
+
+    rows = [{"task": "quadrotor-0", "method": "sdp", "train_seed": s, "iteration": 0, "git_rev": rev, "epochs": e}
+            for s, rev in ((0, "aaa"), (1, "bbb"), (2, "bbb")) for e in (10000, 20000)]
+    lines = revision_lines(pd.DataFrame(rows))
+    assert "| task | method | seeds | iterations | revision |" in lines
+    assert lines[-2:] == ["| quadrotor-0 | sdp | 0 | 0 | `aaa` |", "| quadrotor-0 | sdp | 1,2 | 0 | `bbb` |"]
+    assert revision_lines(pd.DataFrame(columns=["task", "method", "train_seed", "iteration", "git_rev"])) == []

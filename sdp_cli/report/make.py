@@ -189,6 +189,20 @@ def _top_index(results: Path) -> Path:
     return atomic_write_bytes(results / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
 
 
+def revision_lines(df: pd.DataFrame) -> list[str]:
+    """README section: which code revision made which seeds and iterations, per task and method."""
+    revs = run_revisions(df)
+    if revs.empty:
+        return []
+    lines = ["", "## Code revisions of the runs (from the evaluation manifests)", "",
+             "| task | method | seeds | iterations | revision |", "|---|---|---|---|---|"]
+    for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
+        its = ",".join(str(i) for i in sorted(g.iteration.unique()))
+        seeds = ",".join(str(int(v)) for v in sorted(set(g.train_seed.dropna()))) or "n/a"
+        lines.append(f"| {task} | {method} | {seeds} | {its} | `{rev}` |")
+    return lines
+
+
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
            carried: list[str] = ()) -> Path:
     budgets = (df.groupby(["task", "method"]).agg(
@@ -209,13 +223,7 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     if spec.is_file():
         lines += coverage_lines(df, name)
     lines += list(carried)
-    revs = run_revisions(df)
-    if not revs.empty:
-        lines += ["", "## Code revisions of the runs (from the evaluation manifests)", "",
-                  "| task | method | iterations | revision |", "|---|---|---|---|"]
-        for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
-            its = ",".join(str(i) for i in sorted(g.iteration.unique()))
-            lines.append(f"| {task} | {method} | {its} | `{rev}` |")
+    lines += revision_lines(df)
     lines += ["", "## Files", ""]
     lines += [f"- `{p.name}`" for p in files if p.parent == out]
     n_curves = sum(1 for p in files if p.parent == out / "curves")

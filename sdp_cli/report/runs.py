@@ -144,7 +144,7 @@ def mean_ci(values: pd.Series) -> tuple[float, float, int]:
 
 
 def run_revisions(df: pd.DataFrame) -> pd.DataFrame:
-    """The code revision of each evaluation (from its manifest): ``(task, method, iteration, git_rev)``
-    rows (a resumed loop may span several commits)."""
-    cols = ["task", "method", "iteration", "git_rev"]
+    """The code revision of each evaluation (from its manifest): ``(task, method, train_seed, iteration,
+    git_rev)`` rows (a resumed loop may span several commits; seeds may be run by different ones)."""
+    cols = ["task", "method", "train_seed", "iteration", "git_rev"]
     return df[cols].drop_duplicates().reset_index(drop=True) if len(df) else pd.DataFrame(columns=cols)
