@@ -96,8 +96,18 @@ def test_earlier_tables_give_the_rows_of_kept_runs(tmp_path):
                   "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "new.csv", index=False)
     assert list(c.rows("new.csv", "ur5", pd.Series(["dp"])).iterations) == [1, 2, 4]
     assert c.rows("missing.csv", "ur5", pd.Series(["dp"])).empty
-    assert c.keeps_traj("ur5", pd.Series(["sdp", "dp"])) and not c.keeps_traj("ur5", pd.Series(["sdp"]))
-    assert not Carried(tmp_path).keeps_traj("ur5", pd.Series(["dp"]))      # a plain report redraws
+    drawn = pd.DataFrame({"method": ["sdp", "sdp", "dp"], "run": ["sdp-n8", "sdp-n32", "dp-n32"]})
+    assert c.keeps_traj(drawn) and not c.keeps_traj(drawn[drawn.method == "sdp"])
+    assert not Carried(tmp_path).keeps_traj(drawn)      # a plain report redraws
+
+
+def test_trajectory_figure_is_kept_when_a_method_is_fresh_only_at_a_smaller_budget(tmp_path):
+    """A second seed run at small n_traj only: the figure draws the largest budget, whose runs are all
+    carried (their rollouts gone), so the earlier figure stays rather than one without that method."""
+    c = Carried(tmp_path, frozenset({"sdp-n32-s0", "dp-n32-s0"}), frozenset({("q", "sdp"), ("q", "dp")}))
+    drawn = pd.DataFrame({"task": "q", "method": ["sdp", "dp", "pddp"], "run": ["sdp-n32-s0", "dp-n32-s0", "pddp-n32-s1"]})
+    assert c.keeps_traj(drawn)
+    assert not c.keeps_traj(drawn[drawn.method == "pddp"])
 
 
 def test_keep_missing_without_an_earlier_report_is_one_clear_error(tmp_path, monkeypatch):

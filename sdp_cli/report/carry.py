@@ -52,10 +52,11 @@ class Carried:
         no_run = old.run.isna() if "run" in old else pd.Series(True, index=old.index)
         return old[by_run | (no_run & old.method.isin(stale))]
 
-    def keeps_traj(self, task: str, methods: pd.Series) -> bool:
-        """Whether ``traj_<task>.png`` is kept from the earlier report: some method it would draw has
-        no run with files here."""
-        return bool(self.runs) and any((task, m) not in self.fresh for m in set(methods))
+    def keeps_traj(self, rows: pd.DataFrame) -> bool:
+        """Whether ``traj_<task>.png`` is kept from the earlier report: among ``rows``, the rows it would draw
+        (one task, one budget per method), some method has only carried runs, whose rollouts are gone (a
+        method with fresh runs at another budget only is not drawn either)."""
+        return bool(self.runs) and any(set(g.run) <= self.runs for _, g in rows.groupby("method"))
 
 
 def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:

@@ -96,7 +96,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         written += fig1(fdf, task, out)                      # every dataset size and epoch count
         written += timing(fdf, task, out, carried)
         written += fig2a(bdf, task, out) + fig2b(bdf, task, out, carried) + table2c(bdf, task, out)   # one budget per method
-        if carried.keeps_traj(task, bdf[bdf.task == task].method) and (out / f"traj_{task}.png").is_file():
+        if carried.keeps_traj(bdf[bdf.task == task]) and (out / f"traj_{task}.png").is_file():
             written.append(out / f"traj_{task}.png")
             kept_traj.append(task)
         else:
