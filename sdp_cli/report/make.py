@@ -189,6 +189,11 @@ def _top_index(results: Path) -> Path:
     return atomic_write_bytes(results / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
 
 
+def _ints(values: pd.Series) -> str:
+    """The distinct integers of ``values``, sorted and comma-joined (``"0,1,2"``)."""
+    return ",".join(str(int(v)) for v in sorted(set(values.dropna())))
+
+
 def revision_lines(df: pd.DataFrame) -> list[str]:
     """README section: which code revision made which seeds and iterations, per task and method."""
     revs = run_revisions(df)
@@ -197,8 +202,8 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
     lines = ["", "## Code revisions of the runs (from the evaluation manifests)", "",
              "| task | method | seeds | iterations | revision |", "|---|---|---|---|---|"]
     for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
-        its = ",".join(str(i) for i in sorted(g.iteration.unique()))
-        seeds = ",".join(str(int(v)) for v in sorted(set(g.train_seed.dropna()))) or "n/a"
+        its = _ints(g.iteration)
+        seeds = _ints(g.train_seed) or "n/a"
         lines.append(f"| {task} | {method} | {seeds} | {its} | `{rev}` |")
     return lines
 
@@ -206,9 +211,9 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
            carried: list[str] = ()) -> Path:
     budgets = (df.groupby(["task", "method"]).agg(
-        seeds=("train_seed", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
-        n_traj=("n_traj", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
-        epochs=("epochs", lambda s: ",".join(str(int(v)) for v in sorted(set(s.dropna())))),
+        seeds=("train_seed", _ints),
+        n_traj=("n_traj", _ints),
+        epochs=("epochs", _ints),
         iterations=("iteration", lambda s: int(s.max()) + 1),
         n_test=("n", "max"), t_a=("t_a", lambda s: ",".join(str(v) for v in sorted(set(s.dropna()))))).reset_index())
     name = experiment or runs.name
