@@ -321,3 +321,16 @@ def test_readme_names_the_seeds_each_code_revision_made():
     assert "| task | method | seeds | iterations | revision |" in lines
     assert lines[-2:] == ["| quadrotor-0 | sdp | 0 | 0 | `aaa` |", "| quadrotor-0 | sdp | 1,2 | 0 | `bbb` |"]
     assert revision_lines(pd.DataFrame(columns=["task", "method", "train_seed", "iteration", "git_rev"])) == []
+
+
+def test_fig2b_counts_the_to_alone_solves_once_however_many_runs_repeat_them():
+    """Two seeds of a method evaluated on the same 3 instances: the TO-alone histogram has 3 counts, not 6."""
+    import pandas as pd
+
+    from sdp_cli.report.figures import _to_alone_once
+
+    rows = [{"method": m, "guess": g, "iterations": it, "run": f"{m}-s{s}"}
+            for m in ("dp", "sdp") for s in (0, 1) for g in ("naive", "policy") for it in (10, 12, 40)]
+    assert sorted(_to_alone_once(pd.DataFrame(rows))) == [10, 12, 40]
+    old = pd.DataFrame(rows).drop(columns="run")          # a table from before it had the column: kept whole
+    assert len(_to_alone_once(old)) == 6

@@ -302,6 +302,15 @@ def _named(path) -> Path | None:
     return Path(path) if isinstance(path, str) and path and Path(path).is_file() else None
 
 
+def _to_alone_once(t: pd.DataFrame) -> pd.Series:
+    """TO alone's iterations (rows with guess "naive") of one run: the solve is the same for every method and
+    seed (the same test instances), so each run repeats it; rows without a run (older tables) are kept."""
+    base = t[t.guess == "naive"]
+    base = base[base.method == sorted(t.method.unique())[0]]
+    runs = sorted(base.run.dropna().unique()) if "run" in base else []
+    return (base[base.run == runs[0]] if runs else base).iterations
+
+
 def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
     guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess);
@@ -338,9 +347,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
     for ax, solver in zip(axes[0], solvers):
         t = tab[tab.solver == solver]
-        base = t[t.guess == "naive"]
-        # TO alone is the same solve for every method (same test instances): show it once
-        base = base[base.method == sorted(t.method.unique())[0]].iterations
+        base = _to_alone_once(t)
         ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
                 label=f"TO alone (naive guess), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
