@@ -313,7 +313,8 @@ def _to_alone_once(t: pd.DataFrame) -> pd.Series:
 
 def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
-    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess);
+    guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess), as
+    shares of each one's solves (methods pool different numbers of runs; TO alone is one run's);
     one panel per TO baseline the runs evaluated (multiple shooting; single shooting). ``carried``
     (:class:`~sdp_cli.report.carry.Carried`): the earlier report's rows of runs whose files are gone."""
     d = df[df.task == task]
@@ -348,17 +349,18 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     for ax, solver in zip(axes[0], solvers):
         t = tab[tab.solver == solver]
         base = _to_alone_once(t)
-        ax.hist(base, bins=bins, histtype="stepfilled", color="0.85", edgecolor="0.4", lw=1.2,
-                label=f"TO alone (naive guess), mean {base.mean():.0f}")
+        ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
+                color="0.85", edgecolor="0.4", lw=1.2, label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
         for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
-            ax.hist(g.iterations, bins=bins, histtype="step", lw=2, color=COLORS.get(method, among=pol.method),
+            ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,
+                    color=COLORS.get(method, among=pol.method),
                     label=f"warm-started by {method_label(method)} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
         _log_ticks(ax.xaxis, lo_x, hi_x)
         ax.set_xlabel(f"TO iterations, {solver}")
-        ax.set_ylabel("instances")
+        ax.set_ylabel("share of solves")
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
     fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as}"
