@@ -165,8 +165,9 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
                   label=f"{method_label(method)} ({epochs} ep.)")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         ax.errorbar(g["n_traj"][ok] * shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0), **kw)
-        for n in g["n_traj"][~ok]:
-            ax.annotate("∞", (n * shift, top), ha="center", va="top", fontsize=14, color=kw["color"])
+        for n in g["n_traj"][~ok]:   # neighbouring curves' ∞ in alternate rows, so that none covers another
+            ax.annotate("∞", (n * shift, top), xytext=(0, -9 * (i % 2)), textcoords="offset points",
+                        ha="center", va="top", fontsize=11, color=kw["color"])
         if "success_mean" in g:
             ax2.errorbar(g["n_traj"] * shift, g["success_mean"], yerr=g["success_ci95"].fillna(0), **kw)
     if np.isfinite(to[0]):
