@@ -334,3 +334,30 @@ def test_fig2b_counts_the_to_alone_solves_once_however_many_runs_repeat_them():
     assert sorted(_to_alone_once(pd.DataFrame(rows))) == [10, 12, 40]
     old = pd.DataFrame(rows).drop(columns="run")          # a table from before it had the column: kept whole
     assert len(_to_alone_once(old)) == 6
+
+
+def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path, monkeypatch):
+    """A diverged mean is drawn as ∞ at the top of fig1's cost axis, two rows of them; on a log axis a
+    band 30% above the highest mean is a tenth of a decade, so the rows covered the highest curve (UR5)."""
+    import pandas as pd
+
+    from sdp_cli.report import figures
+
+    for spread in (1e4, 10.0):            # log axis, linear axis
+        rows = []
+        for seed in range(2):
+            for n, (sdp, dp) in {2: (spread, 50.0), 4: (20.0 + seed, 60.0), 8: (1.0 + seed, 1e9)}.items():
+                rows += [{"task": "t", "iteration": 0, "method": m, "epochs": 100, "n_traj": n, "success_rate": 0.5,
+                          "policy_cost_mean": c, "to_alone_cost_mean": 0.5} for m, c in (("sdp", sdp), ("dp", dp))]
+        figs = []
+        monkeypatch.setattr(figures, "_save_fig", lambda fig, path: figs.append(fig) or path)
+        figures.fig1(pd.DataFrame(rows), "t", tmp_path)
+        ax = figs[0].axes[0]
+        assert ax.get_yscale() == ("log" if spread > 1e3 else "linear")
+        figs[0].canvas.draw()
+        renderer = figs[0].canvas.get_renderer()
+        marks = [t for t in ax.texts if t.get_text() == "∞"]
+        assert len(marks) == 1
+        highest = ax.transData.transform((8, max(spread, 60.0)))[1]     # display y of the highest mean
+        assert min(t.get_window_extent(renderer).y0 for t in marks) > highest + 5   # clear of its marker
+        assert marks[0].xy[1] < ax.get_ylim()[1]

@@ -156,7 +156,10 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     plt = _plt()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
-    top = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0) * 1.3
+    high = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0)
+    low = min(float(finite.min()) if len(finite) else high, to[0] if np.isfinite(to[0]) else high)
+    log_y = low > 0 and high * 1.3 / low > 300   # one outlier flattens the rest on a linear axis: log, as the spread
+    top = high * (4 if log_y else 1.3)   # the ∞ rows: a band above every mean (a factor 1.3 is 0.1 decade)
     curves = sorted(tab.groupby(["method", "epochs"]), key=lambda c: (method_order(c[0][0]), c[0][1]))
     for i, ((method, epochs), g) in enumerate(curves):
         ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
@@ -182,8 +185,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         a.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
         a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("n_traj (trajectories in the dataset)")
-    low = min(float(finite.min()) if len(finite) else top, to[0] if np.isfinite(to[0]) else top)
-    if low > 0 and top / low > 300:       # one outlier flattens the rest on a linear axis: log, as the spread
+    if log_y:
         ax.set_yscale("log")
         ax.set_ylim(low / 1.5, top * 1.05)
     else:
