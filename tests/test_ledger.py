@@ -348,14 +348,14 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     out = tmp_path / "results" / "ablation_k"
     assert set(pd.read_csv(out / "all_runs.csv").method) == {"sdp"}
     assert set(pd.read_csv(out / "fig1_pendulum.csv").method) == {"sdp-K2", "sdp-K5", "sdp-K10"}
-    from sdp_cli.report.figures import method_order   # legends list K in numeric order
+    from sdp_cli.report.style import method_order   # legends list K in numeric order
 
     assert sorted(["sdp-K10", "sdp", "sdp-K2", "dp", "sdp-K5"], key=method_order) == [
         "dp", "sdp", "sdp-K2", "sdp-K5", "sdp-K10"]
     k = pd.read_csv(out / "ablation_k_pendulum.csv")
     assert list(k[k.quantity == "policy cost"].sort_values("k_rollout")["mean"]) == [30.5, 16.0, 15.5]
     assert (out / "ablation_k_pendulum.png").stat().st_size > 10_000
-    from sdp_cli.report.figures import COLORS, MARKERS
+    from sdp_cli.report.style import COLORS, MARKERS
 
     from matplotlib.colors import to_rgb
 

@@ -158,7 +158,8 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     import numpy as np
     import pandas as pd
 
-    from sdp_cli.report.figures import COLORS, MARKERS, _loop_t_a, method_label, method_order
+    from sdp_cli.report.figures import _loop_t_a
+    from sdp_cli.report.style import COLORS, MARKERS, method_label, method_order
     from sdp_cli.report.make import method_variants
 
     rows = []
@@ -350,7 +351,7 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
                 rows += [{"task": "t", "iteration": 0, "method": m, "epochs": 100, "n_traj": n, "success_rate": 0.5,
                           "policy_cost_mean": c, "to_alone_cost_mean": 0.5} for m, c in (("sdp", sdp), ("dp", dp))]
         figs = []
-        monkeypatch.setattr(figures, "_save_fig", lambda fig, path: figs.append(fig) or path)
+        monkeypatch.setattr(figures, "save_fig", lambda fig, path: figs.append(fig) or path)
         figures.fig1(pd.DataFrame(rows), "t", tmp_path)
         ax = figs[0].axes[0]
         assert ax.get_yscale() == ("log" if spread > 1e3 else "linear")

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from sdp_cli.report.figures import COLORS, _agg, _loop_t_a, _plt, _save_csv, _save_fig
+from sdp_cli.report.figures import _agg, _loop_t_a
 from sdp_cli.report.runs import mean_ci
+from sdp_cli.report.style import COLORS, pyplot, save_csv, save_fig
 
 
 def ablation_k(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
@@ -24,7 +25,7 @@ def ablation_k(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     tab = pd.concat([_agg(d, ["method", "epochs", "k_rollout"], col).assign(quantity=name)
                      for col, name in (("policy_cost_mean", "policy cost"), ("success_rate", "success rate"))])
     to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else float("nan")
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, quantity in zip(axes, ("policy cost", "success rate")):
         t = tab[tab.quantity == quantity]
@@ -50,4 +51,4 @@ def ablation_k(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     fig.suptitle(f"K ablation, {task} (n_traj {','.join(str(int(v)) for v in sorted(d.n_traj.unique()))}, "
                  f"{n} seeds; mean and 95% interval)", fontsize=10)
     fig.tight_layout()
-    return [_save_csv(tab, out / f"ablation_k_{task}.csv"), _save_fig(fig, out / f"ablation_k_{task}.png")]
+    return [save_csv(tab, out / f"ablation_k_{task}.csv"), save_fig(fig, out / f"ablation_k_{task}.png")]

@@ -5,132 +5,18 @@ Artifacts are opened only through the paths the evaluation manifests name (``rol
 
 from __future__ import annotations
 
-import io
-import re
 import textwrap
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
+from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.runs import mean_ci
+from sdp_cli.report.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
+                                  pyplot, save_csv, save_fig, save_md)
 
 DIVERGED = 1e5
-_HTA = re.compile(r"h(\d+)-ta(\d+)")
-
-
-def _pair(method: str) -> tuple[int, int] | None:
-    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
-    m = _HTA.fullmatch(str(method).partition("-")[2])
-    return (int(m[1]), int(m[2])) if m else None
-
-
-class _Shades(dict):
-    """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
-    (:func:`sdp_cli.report.make.method_variants`) gets its method's: colours darker for K < 5 and lighter
-    for K > 5; (T_h, T_a) variants spread from dark to light in (T_h, T_a) order among the methods of the
-    same figure (``among``), so that the variants' curves stay apart and each legend entry matches its curve."""
-
-    def get(self, key, default=None, among=()):
-        if key in self:
-            return self[key]
-        base, _, variant = str(key).partition("-")
-        k, pair = re.fullmatch(r"K(\d+)", variant), _pair(key)
-        if base not in self or not (k or pair):
-            return default
-        value = self[base]
-        if not self.shade:
-            return value
-        import matplotlib.colors as mc
-
-        if k:    # darker for K < 5, lighter for K > 5
-            mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
-        else:
-            pairs = sorted({p for p in map(_pair, among) if p} | {pair})
-            mix = (-0.55 + 1.1 * pairs.index(pair) / (len(pairs) - 1) if len(pairs) > 1
-                   else float(np.clip(0.6 * np.log2(sum(pair) / 85), -0.6, 0.6)))
-        rgb = mc.to_rgb(value)
-        if mix < 0:
-            return tuple(c * (1 + mix) for c in rgb)
-        return tuple(c + (1 - c) * mix for c in rgb)
-
-    def __init__(self, values: dict, shade: bool):
-        super().__init__(values)
-        self.shade = shade
-
-
-def method_label(method: str) -> str:
-    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``."""
-    pair = _pair(method)
-    if pair:
-        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
-    base, sep, rest = str(method).partition("-")
-    return base.upper() + sep + rest
-
-
-COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)
-MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
-CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
-
-
-def method_order(method: str) -> tuple:
-    """Sort key of a method or variant, numbers numerically: ``sdp-K2`` before ``sdp-K10``, ``sdp-h32-ta16``
-    before ``sdp-h64-ta16`` before ``sdp-h64-ta63``."""
-    base, _, variant = str(method).partition("-")
-    return base, tuple(int(n) for n in re.findall(r"\d+", variant))
-
-
-def _by_method(tab: pd.DataFrame, then: list[str]) -> pd.DataFrame:
-    """``tab`` sorted by :func:`method_order`, then by the columns ``then``."""
-    return tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), *tab[then].iloc[i]))]
-
-
-def _log_ticks(axis, lo: float, hi: float) -> None:
-    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... (finer over about a decade) as plain
-    numbers, no minor labels."""
-    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
-
-    ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 2, 5) if lo <= m * 10 ** e <= hi]
-    if len(ticks) < 4:   # about a decade: finer steps, so that the lower values can be read
-        ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 1.5, 2, 3, 4, 5, 7) if lo <= m * 10 ** e <= hi]
-    axis.set_major_locator(FixedLocator(ticks))
-    axis.set_major_formatter(StrMethodFormatter("{x:g}"))
-    axis.set_minor_formatter(NullFormatter())
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save_fig(fig, path: Path) -> Path:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
-    return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
-
-
-def _save_csv(df: pd.DataFrame, path: Path) -> Path:
-    """CSV; a ``ci95`` column reads "n/a" where there is no interval (one seed: see ``n_seeds``)."""
-    for col in [c for c in df.columns if c.endswith("ci95")]:
-        df = df.assign(**{col: [("n/a" if pd.isna(h) else h) for h in df[col]]})
-    return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
-
-
-def _save_md(df: pd.DataFrame, path: Path, title: str) -> Path:
-    def fmt(v):
-        return f"{v:.4g}" if isinstance(v, (float, np.floating)) else str(v)
-
-    lines = [f"# {title}", "", "| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
-    return atomic_write_bytes(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
-
-
 def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
     rows = []
     for key, g in df.groupby(by, dropna=False):
@@ -147,13 +33,13 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     if d.empty or d["n_traj"].isna().all():
         return []
     by = ["method", "epochs", "n_traj"]
-    tab = _by_method(_agg(d, by, "policy_cost_mean"), by[1:])
+    tab = by_method(_agg(d, by, "policy_cost_mean"), by[1:])
     if "success_rate" in d:
         succ = _agg(d, by, "success_rate").rename(columns={"mean": "success_mean", "ci95": "success_ci95"})
         tab = tab.merge(succ.drop(columns="n_seeds"), on=by, how="left")
     to = mean_ci(d["to_alone_cost_mean"]) if "to_alone_cost_mean" in d else (np.nan, np.nan, 0)
     tab["to_alone_mean"] = to[0]
-    plt = _plt()
+    plt = pyplot()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
     high = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0)
@@ -198,7 +84,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax2.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="upper left",
                bbox_to_anchor=(1.02, 1.0))   # beside the axes, never over the data
     fig.tight_layout()
-    return [_save_csv(tab, out / f"fig1_{task}.csv"), _save_fig(fig, out / f"fig1_{task}.png")]
+    return [save_csv(tab, out / f"fig1_{task}.csv"), save_fig(fig, out / f"fig1_{task}.png")]
 
 
 def budget_title(d: pd.DataFrame) -> str:
@@ -242,7 +128,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
             t["curve"] = what
             rows.append(t)
     tab = pd.concat(rows, ignore_index=True)
-    plt = _plt()
+    plt = pyplot()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     costs = tab[tab.curve != "policy success rate"]
     finite = costs["mean"][np.isfinite(costs["mean"]) & (costs["mean"] < DIVERGED)]
@@ -284,7 +170,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         a.set_xlabel("algorithm iteration")
     ax.set_yscale("log")
     ax.set_ylim(lo, top * 1.2)
-    _log_ticks(ax.yaxis, lo, top * 1.2)
+    log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
     ax.set_title(textwrap.fill(f"Fig. 2a — alternating loop, {task}{budget_title(d)}", 70), fontsize=10)
     ax2.set_ylim(-0.03, 1.03)
@@ -297,7 +183,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     ax2.legend(handles=c_handles, fontsize=7, loc="lower left", bbox_to_anchor=(1.02, 0.0), title="cost curve",
                title_fontsize=7)
     fig.tight_layout()
-    return [_save_csv(tab, out / f"fig2a_{task}.csv"), _save_fig(fig, out / f"fig2a_{task}.png")]
+    return [save_csv(tab, out / f"fig2a_{task}.csv"), save_fig(fig, out / f"fig2a_{task}.png")]
 
 
 def _named(path) -> Path | None:
@@ -343,7 +229,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     if not rows and old.empty:
         return []
     tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)
-    plt = _plt()
+    plt = pyplot()
     solvers = [s for s in ("multiple shooting", "single shooting") if s in set(tab.solver)]
     fig, axes = plt.subplots(1, len(solvers), figsize=(6 * len(solvers), 4), squeeze=False)
     hi = max(int(tab.iterations.max()), 1)
@@ -361,14 +247,14 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                     label=f"warm-started by {method_label(method)} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
-        _log_ticks(ax.xaxis, lo_x, hi_x)
+        log_ticks(ax.xaxis, lo_x, hi_x)
         ax.set_xlabel(f"TO iterations, {solver}")
         ax.set_ylabel("share of solves")
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
     fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as}"
                  f"{budget_title(d)})", fontsize=10)
-    return [_save_csv(tab, out / f"fig2b_{task}.csv"), _save_fig(fig, out / f"fig2b_{task}.png")]
+    return [save_csv(tab, out / f"fig2b_{task}.csv"), save_fig(fig, out / f"fig2b_{task}.png")]
 
 
 TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "policy cost (median)",
@@ -393,8 +279,8 @@ def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     d = d[d.epochs == d.groupby("method").epochs.transform("max")]     # per method (PDDP+S alone has 3e3 on UR5)
     d["total_time"] = d["rollout_time_per_instance"] + d["refined_solve_time_mean"]
     cols = [c for c in TABLE2C if c in d and d[c].notna().any()]
-    tab = _by_method(d.groupby(["method", "t_a"])[cols].mean().reset_index(), ["t_a"])
+    tab = by_method(d.groupby(["method", "t_a"])[cols].mean().reset_index(), ["t_a"])
     tab = tab.rename(columns={"t_a": "T_a", **TABLE2C})
-    return [_save_csv(tab, out / f"table2c_{task}.csv"),
-            _save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]
+    return [save_csv(tab, out / f"table2c_{task}.csv"),
+            save_md(tab, out / f"table2c_{task}.md", f"Table 2c — T_a trade-off, {task} (last iteration{budget_title(d)})")]
 

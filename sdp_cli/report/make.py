@@ -34,11 +34,12 @@ from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
 from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
-from sdp_cli.report.figures import (COLORS, _loop_t_a, _save_csv, fig1, fig2a, fig2b,  # noqa: F401 (COLORS re-exported)
-                                    table2c)
+from sdp_cli.report.figures import _loop_t_a, fig1, fig2a, fig2b, table2c
 from sdp_cli.report.timing import timing
 from sdp_cli.report.traj import trajectories
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
+from sdp_cli.report.style import save_csv
+
 
 def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:
     """The runs of ``experiment`` when ``params.yaml`` selects it (the DVC flow), or None (report
@@ -81,7 +82,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         if df.empty:
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
                            f"run `dvc repro` first")
-    written = [_save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
+    written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
     from sdp_cli.report.curves import loop_costs, training_curves
 
     from sdp_cli.report.ablation import ablation_k

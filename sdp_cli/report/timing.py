@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_timing
-from sdp_cli.report.figures import _save_csv, _save_md
+from sdp_cli.report.style import save_csv, save_md
 
 
 def _policy_dir(policy) -> Path | None:
@@ -92,5 +92,5 @@ def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         tab = pd.concat([tab, old], ignore_index=True).sort_values(["method", "train_seed", "iteration"], kind="stable")
     if tab.empty:
         return []
-    return [_save_csv(tab, out / f"timing_{task}.csv"),
-            _save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]
+    return [save_csv(tab, out / f"timing_{task}.csv"),
+            save_md(tab, out / f"timing_{task}.md", f"Where the time goes — {task} (wall seconds)")]

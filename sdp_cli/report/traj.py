@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.figures import COLORS, _loop_t_a, _named, _plt, _save_fig, method_label, method_order
+from sdp_cli.report.figures import _loop_t_a, _named
+from sdp_cli.report.style import COLORS, method_label, method_order, pyplot, save_fig
 
 
 def _best_rollout(d: pd.DataFrame):
@@ -80,7 +81,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     task = get_task(task_name, **(meta0.get("task_options") or {}))
     top = task.nq > 2
     ix, iy = (0, 1) if top else (1, 2)
-    plt = _plt()
+    plt = pyplot()
     n_show = min(n_show, len(r0["X"]))
     base_ok = np.asarray(f0["inst_base_converged"], bool) if "inst_base_converged" in f0 else None
     n_lines = len(runs) + 2                      # each panel's title: instance, TO alone, one line per method
@@ -125,4 +126,4 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
                             f"not chosen){conv}"] + [f"{method_label(m)} (its best run by success, {name}): over all {n}, {_shares(r, rmeta)}"
                                                for m, (r, _, rmeta, name) in runs.items()]), fontsize=9)
     fig.tight_layout(rect=(0, (0.22 * n_leg + 0.1) / height, 1, 1))
-    return [_save_fig(fig, out / f"traj_{task_name}.png")]
+    return [save_fig(fig, out / f"traj_{task_name}.png")]

@@ -1,0 +1,127 @@
+"""How the report's figures and tables look and are written: method colours, markers, legend names and
+order (variants ``<method>-K<k>`` and ``<method>-h<T_h>-ta<T_a>`` included), readable log ticks, the Agg
+backend, and atomic writes of PNG, CSV and markdown files."""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.data.artifacts import atomic_write_bytes
+
+_HTA = re.compile(r"h(\d+)-ta(\d+)")
+
+
+def _pair(method: str) -> tuple[int, int] | None:
+    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
+    m = _HTA.fullmatch(str(method).partition("-")[2])
+    return (int(m[1]), int(m[2])) if m else None
+
+
+class _Shades(dict):
+    """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
+    (:func:`sdp_cli.report.make.method_variants`) gets its method's: colours darker for K < 5 and lighter
+    for K > 5; (T_h, T_a) variants spread from dark to light in (T_h, T_a) order among the methods of the
+    same figure (``among``), so that the variants' curves stay apart and each legend entry matches its curve."""
+
+    def get(self, key, default=None, among=()):
+        if key in self:
+            return self[key]
+        base, _, variant = str(key).partition("-")
+        k, pair = re.fullmatch(r"K(\d+)", variant), _pair(key)
+        if base not in self or not (k or pair):
+            return default
+        value = self[base]
+        if not self.shade:
+            return value
+        import matplotlib.colors as mc
+
+        if k:    # darker for K < 5, lighter for K > 5
+            mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
+        else:
+            pairs = sorted({p for p in map(_pair, among) if p} | {pair})
+            mix = (-0.55 + 1.1 * pairs.index(pair) / (len(pairs) - 1) if len(pairs) > 1
+                   else float(np.clip(0.6 * np.log2(sum(pair) / 85), -0.6, 0.6)))
+        rgb = mc.to_rgb(value)
+        if mix < 0:
+            return tuple(c * (1 + mix) for c in rgb)
+        return tuple(c + (1 - c) * mix for c in rgb)
+
+    def __init__(self, values: dict, shade: bool):
+        super().__init__(values)
+        self.shade = shade
+
+
+def method_label(method: str) -> str:
+    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``."""
+    pair = _pair(method)
+    if pair:
+        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
+    base, sep, rest = str(method).partition("-")
+    return base.upper() + sep + rest
+
+
+COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)
+MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
+CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
+
+
+def method_order(method: str) -> tuple:
+    """Sort key of a method or variant, numbers numerically: ``sdp-K2`` before ``sdp-K10``, ``sdp-h32-ta16``
+    before ``sdp-h64-ta16`` before ``sdp-h64-ta63``."""
+    base, _, variant = str(method).partition("-")
+    return base, tuple(int(n) for n in re.findall(r"\d+", variant))
+
+
+def by_method(tab: pd.DataFrame, then: list[str]) -> pd.DataFrame:
+    """``tab`` sorted by :func:`method_order`, then by the columns ``then``."""
+    return tab.iloc[sorted(range(len(tab)), key=lambda i: (method_order(tab.method.iloc[i]), *tab[then].iloc[i]))]
+
+
+def log_ticks(axis, lo: float, hi: float) -> None:
+    """Readable ticks on a log axis (``ax.xaxis`` or ``ax.yaxis``): 1, 2, 5, 10, 20, ... (finer over about a decade) as plain
+    numbers, no minor labels."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
+
+    ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 2, 5) if lo <= m * 10 ** e <= hi]
+    if len(ticks) < 4:   # about a decade: finer steps, so that the lower values can be read
+        ticks = [m * 10 ** e for e in range(-4, 7) for m in (1, 1.5, 2, 3, 4, 5, 7) if lo <= m * 10 ** e <= hi]
+    axis.set_major_locator(FixedLocator(ticks))
+    axis.set_major_formatter(StrMethodFormatter("{x:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_fig(fig, path: Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    pyplot().close(fig)
+    return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
+
+
+def save_csv(df: pd.DataFrame, path: Path) -> Path:
+    """CSV; a ``ci95`` column reads "n/a" where there is no interval (one seed: see ``n_seeds``)."""
+    for col in [c for c in df.columns if c.endswith("ci95")]:
+        df = df.assign(**{col: [("n/a" if pd.isna(h) else h) for h in df[col]]})
+    return atomic_write_bytes(path, lambda f: f.write(df.to_csv(index=False).encode()))
+
+
+def save_md(df: pd.DataFrame, path: Path, title: str) -> Path:
+    def fmt(v):
+        return f"{v:.4g}" if isinstance(v, (float, np.floating)) else str(v)
+
+    lines = [f"# {title}", "", "| " + " | ".join(df.columns) + " |", "|" + "---|" * len(df.columns)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return atomic_write_bytes(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
