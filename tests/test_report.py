@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from sdp_cli.report.make import _top_index
 
 
@@ -339,7 +341,8 @@ def test_fig2b_counts_the_to_alone_solves_once_however_many_runs_repeat_them():
 
 def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path, monkeypatch):
     """A diverged mean is drawn as ∞ at the top of fig1's cost axis, two rows of them; on a log axis a
-    band 30% above the highest mean is a tenth of a decade, so the rows covered the highest curve (UR5)."""
+    band 30% above the highest mean is a tenth of a decade, so the rows covered the highest curve (UR5).
+    An interval reaching below zero runs off a log axis' bottom: "≤0" says so there."""
     import pandas as pd
 
     from sdp_cli.report import figures
@@ -347,7 +350,8 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
     for spread in (1e4, 10.0):            # log axis, linear axis
         rows = []
         for seed in range(2):
-            for n, (sdp, dp) in {2: (spread, 50.0), 4: (20.0 + seed, 60.0), 8: (1.0 + seed, 1e9)}.items():
+            dp_n4 = 60.0 + 900 * seed if spread > 1e3 else 60.0     # two far-apart seeds: mean 510 ± 5700
+            for n, (sdp, dp) in {2: (spread, 50.0), 4: (20.0 + seed, dp_n4), 8: (1.0 + seed, 1e9)}.items():
                 rows += [{"task": "t", "iteration": 0, "method": m, "epochs": 100, "n_traj": n, "success_rate": 0.5,
                           "policy_cost_mean": c, "to_alone_cost_mean": 0.5} for m, c in (("sdp", sdp), ("dp", dp))]
         figs = []
@@ -362,3 +366,5 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
         highest = ax.transData.transform((8, max(spread, 60.0)))[1]     # display y of the highest mean
         assert min(t.get_window_extent(renderer).y0 for t in marks) > highest + 5   # clear of its marker
         assert marks[0].xy[1] < ax.get_ylim()[1]
+        zeros = [t.xy[0] for t in ax.texts if t.get_text() == "≤0"]
+        assert zeros == ([pytest.approx(4, rel=0.1)] if spread > 1e3 else [])     # DP's n_traj 4

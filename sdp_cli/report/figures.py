@@ -25,6 +25,14 @@ def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _mark_reaching_zero(ax, x, mean, ci, color) -> None:
+    """On a log axis an interval whose lower end is <= 0 runs off the bottom: write "≤0" there, at ``x``."""
+    for xi, m, h in zip(x, mean, ci):
+        if ax.get_yscale() == "log" and np.isfinite(h) and m - h <= 0:
+            ax.annotate("≤0", (xi, 0), xycoords=("data", "axes fraction"), xytext=(0, 2), textcoords="offset points",
+                        ha="center", va="bottom", fontsize=7, color=color)
+
+
 def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     """Fig. 1: the paper's quantity, the mean policy cost per dataset size (∞ where one diverged rollout
     made the mean infinite), and beside it the policy's success rate, which the mean hides then.
@@ -47,6 +55,8 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     log_y = low > 0 and high * 1.3 / low > 300   # one outlier flattens the rest on a linear axis: log, as the spread
     top = high * (4 if log_y else 1.3)   # the ∞ rows: a band above every mean (a factor 1.3 is 0.1 decade)
     curves = sorted(tab.groupby(["method", "epochs"]), key=lambda c: (method_order(c[0][0]), c[0][1]))
+    if log_y:
+        ax.set_yscale("log")
     for i, ((method, epochs), g) in enumerate(curves):
         ls = "-" if epochs == tab[tab.method == method]["epochs"].max() else "--"
         shift = 1.07 ** (i - (len(curves) - 1) / 2)       # multiplicative: the n_traj axis is log
@@ -54,6 +64,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
                   label=f"{method_label(method)} ({epochs} ep.)")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         ax.errorbar(g["n_traj"][ok] * shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0), **kw)
+        _mark_reaching_zero(ax, g["n_traj"][ok] * shift, g["mean"][ok], g["ci95"][ok], kw["color"])
         for n in g["n_traj"][~ok]:   # neighbouring curves' ∞ in alternate rows, so that none covers another
             ax.annotate("∞", (n * shift, top), xytext=(0, -9 * (i % 2)), textcoords="offset points",
                         ha="center", va="top", fontsize=11, color=kw["color"])
@@ -72,7 +83,6 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("n_traj (trajectories in the dataset)")
     if log_y:
-        ax.set_yscale("log")
         ax.set_ylim(low / 1.5, top * 1.05)
     else:
         ax.set_ylim(0, top * 1.05)
@@ -136,6 +146,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / 1.5
     top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
     methods = sorted(tab.method.unique(), key=method_order)
+    ax.set_yscale("log")
     for (method, curve), g in tab.groupby(["method", "curve"]):
         g = g.sort_values("iteration")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
@@ -147,6 +158,8 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
                    color=COLORS.get(method, among=methods),
                    mfc="white" if curve == "ArgminCost" else COLORS.get(method, among=methods))
         if a is ax:  # one ∞ per method and iteration, side by side
+            _mark_reaching_zero(ax, g["iteration"][ok] + shift, g["mean"][ok], g["ci95"][ok],
+                                COLORS.get(method, among=methods))
             for it in g["iteration"][~ok]:
                 ax.annotate("∞", (it + shift, top), ha="center", va="top", fontsize=16,
                             color=COLORS.get(method, among=methods))
@@ -168,7 +181,6 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     for a in (ax, ax2):
         a.set_xticks(iters)
         a.set_xlabel("algorithm iteration")
-    ax.set_yscale("log")
     ax.set_ylim(lo, top * 1.2)
     log_ticks(ax.yaxis, lo, top * 1.2)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
