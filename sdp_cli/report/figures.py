@@ -25,6 +25,13 @@ def _agg(df: pd.DataFrame, by: list[str], col: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _bottom_room(tab: pd.DataFrame) -> float:
+    """How far below the lowest mean a log axis starts: further (a free band for "≤0") where an interval of
+    ``tab`` (``mean``, ``ci95``) reaches below zero."""
+    ok = np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED) & np.isfinite(tab["ci95"].astype(float))
+    return 6.0 if (tab["mean"][ok] - tab["ci95"][ok].astype(float) <= 0).any() else 1.5
+
+
 def _mark_reaching_zero(ax, x, mean, ci, color) -> None:
     """On a log axis an interval whose lower end is <= 0 runs off the bottom: write "≤0" there, at ``x``."""
     for xi, m, h in zip(x, mean, ci):
@@ -83,7 +90,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
         a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("n_traj (trajectories in the dataset)")
     if log_y:
-        ax.set_ylim(low / 1.5, top * 1.05)
+        ax.set_ylim(low / _bottom_room(tab), top * 1.05)
     else:
         ax.set_ylim(0, top * 1.05)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
@@ -143,7 +150,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
     costs = tab[tab.curve != "policy success rate"]
     finite = costs["mean"][np.isfinite(costs["mean"]) & (costs["mean"] < DIVERGED)]
     to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else np.nan
-    lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / 1.5
+    lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / _bottom_room(costs)
     top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
     methods = sorted(tab.method.unique(), key=method_order)
     ax.set_yscale("log")
