@@ -315,3 +315,17 @@ def check_task_params(task: Task, stored: dict | None, what: str) -> None:
                        f"re-create it with this version")
     diff = sorted(k for k in set(here) | set(stored) if norm(here.get(k)) != norm(stored.get(k)))
     raise SdpError(f"{what} task parameters differ from task {task.name!r} as built here in: {', '.join(diff)}")
+
+
+class StartGoalTask(Task):
+    """A task whose instances are ``xi = [x0 (nx), goal position (3)]`` (UR5 reach, quadrotor)."""
+
+    def initial_state(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(xi, dtype=float)[: self.nx].copy()
+
+    def target(self, xi: np.ndarray) -> np.ndarray:
+        """Goal position (3,)."""
+        return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
+
+    def goal_point(self, xi: np.ndarray) -> np.ndarray:
+        return self.target(xi)

@@ -59,7 +59,7 @@ import numpy as np
 import pinocchio as pin
 
 from sdp_cli.errors import SdpError
-from sdp_cli.tasks.base import Task
+from sdp_cli.tasks.base import StartGoalTask
 from sdp_cli.tasks.robots import load_model
 
 ARM = 0.1525  # m, rotor distance to the CoM
@@ -126,7 +126,7 @@ def bounded_least_squares(A: np.ndarray, b: np.ndarray, lb: np.ndarray, ub: np.n
     return best_u.reshape(b.shape[:-1] + (n,))
 
 
-class QuadrotorTask(Task):
+class QuadrotorTask(StartGoalTask):
     """Hector quadrotor flying to a goal at the same height among vertical columns."""
 
     action = "x"
@@ -183,21 +183,6 @@ class QuadrotorTask(Task):
             start, goal = goal, start
         x0 = np.concatenate([start, [0.0, 0.0, 0.0, 1.0], np.zeros(6)])
         return np.concatenate([x0, goal])
-
-    def initial_state(self, xi: np.ndarray) -> np.ndarray:
-        return np.asarray(xi, dtype=float)[: self.nx].copy()
-
-    def with_initial_state(self, xi: np.ndarray, x0: np.ndarray) -> np.ndarray:
-        """``xi`` with its initial state replaced by ``x0`` (same goal)."""
-        xi = np.asarray(xi, dtype=float).copy()
-        xi[: self.nx] = x0
-        return xi
-
-    def target(self, xi: np.ndarray) -> np.ndarray:
-        """Goal position (3,)."""
-        return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
-
-    goal_point = target
 
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """Base positions along a trajectory: (T+1, 13) -> (T+1, 3)."""

@@ -43,7 +43,7 @@ import numpy as np
 import pinocchio as pin
 
 from sdp_cli.errors import SdpError
-from sdp_cli.tasks.base import Task
+from sdp_cli.tasks.base import StartGoalTask
 from sdp_cli.tasks.robots import load_model
 
 EE_FRAME = "tool0"
@@ -65,7 +65,7 @@ VARIANTS = {
 }
 
 
-class Ur5Task(Task):
+class Ur5Task(StartGoalTask):
     """UR5 reaching a 3D end-effector target under torque limits."""
 
     action = "x"
@@ -113,20 +113,6 @@ class Ur5Task(Task):
             q0 = Q_HOME + rng.uniform(-INIT_SPREAD, INIT_SPREAD, self.nq)
         target = self.sample_target(rng) if self.r_tgt else P_FIXED.copy()
         return np.concatenate([q0, np.zeros(self.nv), target])
-
-    def initial_state(self, xi: np.ndarray) -> np.ndarray:
-        return np.asarray(xi, dtype=float)[: self.nx].copy()
-
-    def with_initial_state(self, xi: np.ndarray, x0: np.ndarray) -> np.ndarray:
-        """``xi`` with its initial state replaced by ``x0`` (same target)."""
-        xi = np.asarray(xi, dtype=float).copy()
-        xi[: self.nx] = x0
-        return xi
-
-    def target(self, xi: np.ndarray) -> np.ndarray:
-        return np.asarray(xi, dtype=float)[self.nx:self.nx + 3].copy()
-
-    goal_point = target
 
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """tool0 positions along a trajectory: (T+1, 12) -> (T+1, 3)."""
