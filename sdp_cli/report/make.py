@@ -92,11 +92,14 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     fdf = method_variants(df)
     bdf = largest_budget(fdf)
     carried = Carried(out, kept, fresh_methods(fdf, kept))
+    # fig2b draws one budget per method: a method whose fresh runs are all at another budget still needs its
+    # carried rows there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
+    drawn = Carried(out, kept, fresh_methods(bdf, kept))
     kept_traj = []
     for task in sorted(fdf.task.dropna().unique()):
         written += fig1(fdf, task, out)                      # every dataset size and epoch count
         written += timing(fdf, task, out, carried)
-        written += fig2a(bdf, task, out) + fig2b(bdf, task, out, carried) + table2c(bdf, task, out)   # one budget per method
+        written += fig2a(bdf, task, out) + fig2b(bdf, task, out, drawn) + table2c(bdf, task, out)   # one budget per method
         if carried.keeps_traj(bdf[bdf.task == task]) and (out / f"traj_{task}.png").is_file():
             written.append(out / f"traj_{task}.png")
             kept_traj.append(task)
