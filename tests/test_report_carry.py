@@ -120,3 +120,32 @@ def test_keep_missing_without_an_earlier_report_is_one_clear_error(tmp_path, mon
     r = CliRunner().invoke(app, ["report", "--runs", "runs", "--out", "out", "--keep-missing"])
     assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert "no run/task columns" in r.output
+
+
+def test_fig2b_keeps_run_less_rows_of_a_method_fresh_only_at_a_smaller_budget(tmp_path, monkeypatch):
+    """fig2b draws each method's largest budget. DP's n_traj 32 run is carried (folder gone) and its fig2b
+    rows predate the ``run`` column; new DP runs at n_traj 8 only must not drop them (they did: UR5 DP
+    vanished from fig2b_ur5-fixed.png once DP had fresh runs at smaller budgets)."""
+    import shutil
+
+    monkeypatch.chdir(tmp_path)
+    runs, out = tmp_path / "runs", tmp_path / "results" / "exp"
+
+    def evaluate(run, n_traj, seed):
+        d = runs / run / "it0" / "eval"
+        d.mkdir(parents=True, exist_ok=True)
+        write_evaluation([{**ROW, "method": "dp", "n_traj": n_traj, "train_seed": seed, "run": run, "iteration": 0,
+                           "policy_cost_mean": 1.0}], d / "eval.csv", [NO_FILES])
+
+    evaluate("dp-n32-s0", 32, 0)
+    make_report(runs, out, "exp")
+    earlier = pd.DataFrame({"solver": "multiple shooting", "method": "dp", "guess": ["policy", "policy", "naive"],
+                            "iterations": [19, 21, 300]})
+    earlier.to_csv(out / "fig2b_pendulum.csv", index=False)       # a table from before the run column
+    shutil.rmtree(runs / "dp-n32-s0")
+    evaluate("dp-n8-s1", 8, 1)
+    make_report(runs, out, "exp", keep_missing=True)
+    assert set(pd.read_csv(out / "all_runs.csv").run) == {"dp-n32-s0", "dp-n8-s1"}
+    tab = pd.read_csv(out / "fig2b_pendulum.csv")
+    assert sorted(tab[tab.guess == "policy"].iterations) == [19, 21]
+    assert (out / "fig2b_pendulum.png").is_file()
