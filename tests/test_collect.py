@@ -119,6 +119,38 @@ def test_collect_resumes_after_kill_9(tmp_path):
     np.testing.assert_allclose(resumed["X"], fresh["X"], atol=1e-8)
 
 
+class _Stop(Exception):
+    pass
+
+
+def test_resumed_collection_records_the_wall_time_of_every_run(tmp_path):
+    """The dataset's wall time is summed over the runs that built it: a resumed collection goes on from the
+    earlier run's elapsed time (it recorded only the time after the restart)."""
+    cfg = CollectConfig(task="pendulum", n_traj=4, seed=1)
+    out, partial = tmp_path / "w.npz", tmp_path / "w.npz.partial"
+
+    def stop_after_two(stats):
+        if stats.attempts >= 2:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        collect(cfg, out, workers=1, progress=stop_after_two)
+    assert not out.exists() and len(list(partial.glob("0*.npz"))) == 2
+    first = json.loads((partial / "elapsed.json").read_text())["wall_time"]
+    assert 0 < first < 600
+    (partial / "elapsed.json").write_text(json.dumps({"wall_time": 1000.0}))   # a long first run
+    _, stats = collect(cfg, out, workers=1)
+    assert 1000.0 < stats.wall_time < 1600 and load_timing(out)["wall_time"] == pytest.approx(stats.wall_time)
+    assert not partial.exists()
+    bad = tmp_path / "v.npz.partial"         # an unreadable record is one clear error, before any solve
+    bad.mkdir()
+    (bad / "manifest.json").write_text(json.dumps(cfg.identity()))
+    (bad / "elapsed.json").write_text("{not json")
+    with pytest.raises(SdpError, match="bad elapsed.json"):
+        collect(cfg, tmp_path / "v.npz", workers=1)
+    assert not (tmp_path / "v.npz").exists()
+
+
 def test_collect_refuses_corrupt_partial_file(tmp_path):
     out = tmp_path / "c.npz"
     partial = tmp_path / "c.npz.partial"

@@ -8,7 +8,9 @@ Resumability: every finished solve (converged or not) is written atomically to
 ``<out>.partial/<i>.npz`` by the main process before it is counted, next to a
 ``manifest.json`` holding the run's configuration. Re-running the same command after a
 crash (even ``kill -9``) reuses those files and solves only what is missing. The final
-artifact is written atomically, then the partial folder is removed.
+artifact is written atomically, then the partial folder is removed. The wall time it records is summed over
+the runs that built it: each save also records the run's elapsed time so far (``elapsed.json``), which a
+resumed run starts from (time after the last save of a crashed run, whose solve is redone, is not counted).
 """
 
 from __future__ import annotations
@@ -145,10 +147,23 @@ class PartialStore:
     def path(self, index: int) -> Path:
         return self.dir / f"{index:06d}.npz"
 
-    def save(self, result: dict) -> None:
+    def save(self, result: dict, elapsed: float) -> None:
+        """Persist one finished solve, and ``elapsed`` (s), the collection's wall time up to it."""
         if not (self.dir / "manifest.json").is_file():
             self._create()
         save_npz(self.path(int(result["index"])), result, kind="solve", config=self.config.identity())
+        data = json.dumps({"wall_time": float(elapsed)}).encode()
+        atomic_write_bytes(self.dir / "elapsed.json", lambda f: f.write(data))
+
+    def elapsed(self) -> float:
+        """Wall time (s) the earlier runs spent up to their last saved solve (0: a fresh collection)."""
+        try:
+            return float(json.loads((self.dir / "elapsed.json").read_text())["wall_time"])
+        except FileNotFoundError:
+            return 0.0
+        except (OSError, ValueError, KeyError, TypeError):
+            raise SdpError(f"corrupt partial results in {self.dir} (bad elapsed.json); delete that file "
+                           "(only the recorded wall time is lost)") from None
 
     def load_all(self) -> dict[int, dict]:
         done = {}
@@ -257,12 +272,12 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     jobs = _Jobs(config, task)   # loads and checks the policy before anything is written
     store = PartialStore(out, config)
     done = store.load_all()
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() - store.elapsed()     # a resumed collection's wall time goes on from the earlier runs'
     stats = CollectStats()
 
     def update(result: dict | None = None) -> None:
         if result is not None:
-            store.save(result)
+            store.save(result, time.perf_counter() - t_start)
             done[int(result["index"])] = result
         conv = [r for r in done.values() if bool(r["converged"])]
         stats.attempts = len(done)
