@@ -90,12 +90,18 @@ def test_earlier_tables_give_the_rows_of_kept_runs(tmp_path):
     run read from a folder (exactly the earlier report's rows of it), never of a method with one."""
     fresh = frozenset({("ur5", "sdp")})
     c = Carried(tmp_path, frozenset({"dp-n32", "sdp-n8"}), fresh)
+    drawn = pd.DataFrame({"method": ["dp", "sdp"], "run": ["dp-n32", "sdp-n8"]})
     pd.DataFrame({"method": ["dp", "dp", "sdp", "pddp"], "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "old.csv", index=False)
-    assert list(c.rows("old.csv", "ur5", pd.Series(["dp", "sdp"])).iterations) == [1, 2]
+    rows = c.rows("old.csv", "ur5", drawn)
+    assert list(rows.iterations) == [1, 2] and list(rows.run) == ["dp-n32", "dp-n32"]    # given their run
     pd.DataFrame({"method": ["dp", "sdp", "sdp", "dp"], "run": ["dp-n32", "sdp-n8", "sdp-n32", None],
                   "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "new.csv", index=False)
-    assert list(c.rows("new.csv", "ur5", pd.Series(["dp"])).iterations) == [1, 2, 4]
-    assert c.rows("missing.csv", "ur5", pd.Series(["dp"])).empty
+    assert list(c.rows("new.csv", "ur5", drawn[drawn.method == "dp"]).iterations) == [1, 2, 4]
+    # two carried runs of a method: which run a run-less row was is unknown, so it stays without one
+    two = Carried(tmp_path, frozenset({"dp-n32-s0", "dp-n32-s1"}))
+    rows = two.rows("old.csv", "ur5", pd.DataFrame({"method": "dp", "run": ["dp-n32-s0", "dp-n32-s1"]}))
+    assert list(rows.iterations) == [1, 2] and rows.run.isna().all()
+    assert c.rows("missing.csv", "ur5", drawn).empty
     drawn = pd.DataFrame({"method": ["sdp", "sdp", "dp"], "run": ["sdp-n8", "sdp-n32", "dp-n32"]})
     assert c.keeps_traj(drawn) and not c.keeps_traj(drawn[drawn.method == "sdp"])
     assert not Carried(tmp_path).keeps_traj(drawn)      # a plain report redraws
@@ -149,3 +155,8 @@ def test_fig2b_keeps_run_less_rows_of_a_method_fresh_only_at_a_smaller_budget(tm
     tab = pd.read_csv(out / "fig2b_pendulum.csv")
     assert sorted(tab[tab.guess == "policy"].iterations) == [19, 21]
     assert (out / "fig2b_pendulum.png").is_file()
+    assert set(tab.run) == {"dp-n32-s0"}          # the carried run's rows now say whose they are ...
+    evaluate("dp-n32-s1", 32, 1)                  # ... so a second seed at the drawn budget keeps them
+    make_report(runs, out, "exp", keep_missing=True)
+    tab = pd.read_csv(out / "fig2b_pendulum.csv")
+    assert sorted(tab[tab.guess == "policy"].iterations) == [19, 21]

@@ -10,7 +10,8 @@ drop every other run. With ``--keep-missing`` the report extends the one already
 - tables drawn from a run's files (``fig2b_<task>.csv``: TO iterations per instance; ``timing_<task>.csv``;
   ``curves/<run>-it<k>.csv``) keep the earlier report's rows of carried runs: by their ``run`` column,
   or, in tables written before they had one, the rows of a method none of whose runs is under ``--runs``
-  (exactly the earlier report's rows of that method, since the earlier report had no other runs of it);
+  (exactly the earlier report's rows of that method, since the earlier report had no other runs of it),
+  which are then given their run where the method has one carried run in the table;
 - ``traj_<task>.png`` needs the rollouts themselves: it is redrawn only when every method it draws has
   its files here, and otherwise kept from the earlier report (the README says which).
 
@@ -37,20 +38,27 @@ class Carried:
     #: per (task, method as drawn): whether some run of it was read from a run folder
     fresh: frozenset[tuple[str, str]] = field(default_factory=frozenset)
 
-    def rows(self, name: str, task: str, methods: pd.Series) -> pd.DataFrame:
+    def rows(self, name: str, task: str, drawn: pd.DataFrame) -> pd.DataFrame:
         """The earlier report's ``name`` (a CSV in ``out``) rows that belong to carried runs of ``task``:
-        by ``run``, and rows with no run (tables written before they had the column) of the methods in
-        ``methods`` that have no fresh run."""
+        by ``run``, and rows with no run (tables written before they had the column) of the methods of
+        ``drawn`` (the carried runs the table draws: ``method``, ``run``) that have no fresh run. Such rows
+        are given their run where ``drawn`` has one run of their method, so that they stay the run's rows
+        once the method has fresh runs too (a second seed at the same budget)."""
         path = self.out / name
         if not self.runs or not path.is_file():
             return pd.DataFrame()
         old = pd.read_csv(path)
         if "method" not in old:
             return pd.DataFrame()
-        stale = {m for m in set(methods) if (task, m) not in self.fresh}
+        stale = {m for m in set(drawn.method) if (task, m) not in self.fresh}
         by_run = old.run.isin(self.runs) if "run" in old else pd.Series(False, index=old.index)
         no_run = old.run.isna() if "run" in old else pd.Series(True, index=old.index)
-        return old[by_run | (no_run & old.method.isin(stale))]
+        rows = old[by_run | (no_run & old.method.isin(stale))].copy()
+        runs = drawn.drop_duplicates(["method", "run"]).groupby("method").run
+        only = runs.first()[runs.nunique() == 1]
+        untagged = rows.run.isna() if "run" in rows else pd.Series(True, index=rows.index)
+        rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only)
+        return rows
 
     def keeps_traj(self, rows: pd.DataFrame) -> bool:
         """Whether ``traj_<task>.png`` is kept from the earlier report: among ``rows``, the rows it would draw
