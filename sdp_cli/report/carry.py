@@ -50,13 +50,13 @@ class Carried:
         old = pd.read_csv(path)
         if "method" not in old:
             return pd.DataFrame()
+        if "run" not in old:
+            old["run"] = None
         stale = {m for m in set(drawn.method) if (task, m) not in self.fresh}
-        by_run = old.run.isin(self.runs) if "run" in old else pd.Series(False, index=old.index)
-        no_run = old.run.isna() if "run" in old else pd.Series(True, index=old.index)
-        rows = old[by_run | (no_run & old.method.isin(stale))].copy()
+        rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale))].copy()
         runs = drawn.drop_duplicates(["method", "run"]).groupby("method").run
         only = runs.first()[runs.nunique() == 1]
-        untagged = rows.run.isna() if "run" in rows else pd.Series(True, index=rows.index)
+        untagged = rows.run.isna()
         rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only)
         return rows
 
