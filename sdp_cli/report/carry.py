@@ -40,10 +40,10 @@ class Carried:
 
     def rows(self, name: str, task: str, drawn: pd.DataFrame) -> pd.DataFrame:
         """The earlier report's ``name`` (a CSV in ``out``) rows that belong to carried runs of ``task``:
-        by ``run``, and rows with no run (tables written before they had the column) of the methods of
-        ``drawn`` (the carried runs the table draws: ``method``, ``run``) that have no fresh run. Such rows
-        are given their run where ``drawn`` has one run of their method, so that they stay the run's rows
-        once the method has fresh runs too (a second seed at the same budget)."""
+        by ``run``, and rows with no run (tables written before they had the column) of the methods of the
+        carried runs among ``drawn`` (the rows the table draws: ``method``, ``run``) that have no fresh run.
+        Such rows are given their run where one carried run of their method is drawn, so that they stay the
+        run's rows once the method has fresh runs too (a second seed at the same budget)."""
         path = self.out / name
         if not self.runs or not path.is_file():
             return pd.DataFrame()
@@ -52,9 +52,10 @@ class Carried:
             return pd.DataFrame()
         if "run" not in old:
             old["run"] = None
+        drawn = drawn[drawn.run.isin(self.runs)]
         stale = {m for m in set(drawn.method) if (task, m) not in self.fresh}
         rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale))].copy()
-        runs = drawn.drop_duplicates(["method", "run"]).groupby("method").run
+        runs = drawn.groupby("method").run
         only = runs.first()[runs.nunique() == 1]
         untagged = rows.run.isna()
         rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only)

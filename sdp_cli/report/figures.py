@@ -244,7 +244,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                      for v in pi[pi >= 0]]
             rows += [{"solver": solver, "method": r.method, "guess": "naive", "iterations": int(v), "run": r.run}
                      for v in bi[bi >= 0]]
-    old = carried.rows(f"fig2b_{task}.csv", task, last[last.run.isin(carried.runs)]) if carried else pd.DataFrame()
+    old = carried.rows(f"fig2b_{task}.csv", task, last) if carried else pd.DataFrame()
     if not rows and old.empty:
         return []
     tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)

@@ -87,7 +87,7 @@ def timing(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     the earlier report's rows of runs whose files are gone, :class:`~sdp_cli.report.carry.Carried`)."""
     tab = timing_table(df, task)
     d = df[df.task == task]
-    old = carried.rows(f"timing_{task}.csv", task, d[d.run.isin(carried.runs)]) if carried else pd.DataFrame()
+    old = carried.rows(f"timing_{task}.csv", task, d) if carried else pd.DataFrame()
     if not old.empty:
         tab = pd.concat([tab, old], ignore_index=True).sort_values(["method", "train_seed", "iteration"], kind="stable")
     if tab.empty:
