@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 from sdp_cli.evaluate import write_evaluation
-from sdp_cli.report.carry import Carried
+from sdp_cli.report.carry import Carried, plain_method
 from sdp_cli.report.make import make_report
 
 ROW = {"task": "pendulum", "method": "sdp", "n_traj": 3, "t_a": 8, "k_rollout": 5, "train_seed": 0, "epochs": 700,
@@ -160,3 +160,27 @@ def test_fig2b_keeps_run_less_rows_of_a_method_fresh_only_at_a_smaller_budget(tm
     make_report(runs, out, "exp", keep_missing=True)
     tab = pd.read_csv(out / "fig2b_pendulum.csv")
     assert sorted(tab[tab.guess == "policy"].iterations) == [19, 21]
+
+
+def test_a_carried_loop_keeps_its_rows_once_another_variant_of_its_method_is_drawn(tmp_path):
+    """fig3: the (T_h 64, T_a 63) loop's fig2b rows were written as plain ``dp``/``sdp`` with no ``run``
+    column while it was the task's only loop; once a (32, 16) loop runs, the methods are drawn as variants
+    (``dp-h64-ta63``) and those rows must stay, named like their run (they were dropped: fig2b_ur5-rinit
+    vanished). Rows carried by run are renamed too, so one table never names a run two ways."""
+    c = Carried(tmp_path, frozenset({"dp-h64", "sdp-h64"}), frozenset({("ur5", "dp-h32-ta16"), ("ur5", "sdp-h32-ta16")}))
+    drawn = pd.DataFrame({"method": ["dp-h64-ta63", "sdp-h64-ta63", "dp-h32-ta16"], "run": ["dp-h64", "sdp-h64", "dp-h32"]})
+    pd.DataFrame({"method": ["dp", "dp", "sdp", "pddp"], "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "old.csv", index=False)
+    rows = c.rows("old.csv", "ur5", drawn)
+    assert list(rows.iterations) == [1, 2, 3]
+    assert list(rows.method) == ["dp-h64-ta63", "dp-h64-ta63", "sdp-h64-ta63"]
+    assert list(rows.run) == ["dp-h64", "dp-h64", "sdp-h64"]
+    pd.DataFrame({"method": ["dp", "sdp"], "run": ["dp-h64", "sdp-h64"], "iterations": [1, 2]}).to_csv(tmp_path / "new.csv", index=False)
+    assert list(c.rows("new.csv", "ur5", drawn).method) == ["dp-h64-ta63", "sdp-h64-ta63"]
+    # two carried variants of one method: the plain name could be either, so its run-less rows stay out
+    two = Carried(tmp_path, frozenset({"dp-h64", "dp-h32"}))
+    both = pd.DataFrame({"method": ["dp-h64-ta63", "dp-h32-ta16"], "run": ["dp-h64", "dp-h32"]})
+    assert two.rows("old.csv", "ur5", both).empty
+    # nor is a plain name borrowed while the plain method itself has a fresh run
+    fresh_plain = Carried(tmp_path, frozenset({"dp-h64"}), frozenset({("ur5", "dp")}))
+    assert fresh_plain.rows("old.csv", "ur5", drawn[drawn.run == "dp-h64"]).empty
+    assert [plain_method(m) for m in ("sdp-K5-h32-ta16", "pddp+s-K2", "dp-h64-ta63", "sdp")] == ["sdp", "pddp+s", "dp", "sdp"]

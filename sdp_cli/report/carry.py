@@ -20,6 +20,7 @@ Figures, the ledger and the metrics use the carried rows like any other.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,11 +55,18 @@ class Carried:
             old["run"] = None
         drawn = drawn[drawn.run.isin(self.runs)]
         stale = {m for m in set(drawn.method) if (task, m) not in self.fresh}
-        rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale))].copy()
+        # a variant drawn apart now (``sdp-h64-ta63``) was the plain method in a table written while its task
+        # had no other variant: the plain name stands for the one stale variant that has it
+        plain = pd.Series({m: plain_method(m) for m in stale}, dtype=object)
+        alias = {p: g.index[0] for p, g in plain.groupby(plain) if len(g) == 1 and p not in stale and (task, p) not in self.fresh}
+        rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale | set(alias)))].copy()
+        rows["method"] = rows.method.replace(alias)
         runs = drawn.groupby("method").run
         only = runs.first()[runs.nunique() == 1]
         untagged = rows.run.isna()
         rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only)
+        # each carried run's rows under the name its method is drawn by now
+        rows["method"] = rows.run.map(drawn.groupby("run").method.first()).fillna(rows.method)
         return rows
 
     def keeps_traj(self, rows: pd.DataFrame) -> bool:
@@ -66,6 +74,12 @@ class Carried:
         (one task, one budget per method), some method has only carried runs, whose rollouts are gone (a
         method with fresh runs at another budget only is not drawn either)."""
         return bool(self.runs) and any(set(g.run) <= self.runs for _, g in rows.groupby("method"))
+
+
+def plain_method(method: str) -> str:
+    """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
+    :func:`sdp_cli.report.make.method_variants`)."""
+    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", method)
 
 
 def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:
