@@ -301,6 +301,12 @@ def test_fig3_claim_per_horizon_and_action_length():
     assert r.verdict == "partly"
     assert r.detail == ("SDP not run on Fig. 3's (T_h, T_a) ur5-rinit (32, 31), (64, 16), (64, 31), (64, 63); "
                         "ur5-rinit-rtgt (32, 31), (64, 16), (64, 31), (64, 63)")
+    # SDP partway on (64, 63): "not finished" there (it was "not run yet" while the run was on its third iteration)
+    d = pd.concat([d, pd.DataFrame(rows).query("t_a == 63 and iteration < 2")])
+    r = ur5_long_actions({"fig3": d})
+    assert "ur5-rinit (T_h 64, T_a 63): SDP not finished, DP success 10%" in r.ours and r.ours.count("not finished") == 2
+    assert r.ours.count("not run yet") == 2 and "ur5-rinit (T_h 32, T_a 31): SDP not run yet" in r.ours
+    assert "ur5-rinit-sdp-h64-ta63" in r.detail and "(64, 63)" not in r.detail
     d = pd.DataFrame(rows)
     d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
     r = ur5_long_actions({"fig3": d})

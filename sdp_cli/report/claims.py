@@ -267,7 +267,10 @@ def ur5_long_actions(res) -> Row:
     for (task, h, t_a), g in loops.items():
         s, dp = g[g.method == "sdp"], g[g.method == "dp"]
         if s.empty:
-            parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): SDP not run yet, DP {part(dp)}")
+            f3 = res["fig3"]
+            begun = ((f3.method == "sdp") & (f3.task == task) & (f3.horizon == h) & (f3.t_a == t_a)).any()
+            parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): SDP {'not finished' if begun else 'not run yet'}, "
+                         f"DP {part(dp)}")
             continue
         rate = _per_seed(s, "success_rate").mean()
         faster = s.refined_iterations_mean.mean() < s.to_alone_iterations_mean.mean()
