@@ -57,9 +57,10 @@ class Carried:
         stale = {m for m in set(drawn.method) if (task, m) not in self.fresh}
         # a variant drawn apart now (``sdp-h64-ta63``) was the plain method in a table written while its task
         # had no other variant: the plain name stands for the one stale variant that has it
-        plain = pd.Series({m: plain_method(m) for m in stale}, dtype=object)
-        alias = {p: g.index[0] for p, g in plain.groupby(plain)
-                 if len(g) == 1 and p not in stale and (task, p) not in self.fresh}
+        variants: dict[str, list[str]] = {}
+        for m in sorted(stale):
+            variants.setdefault(plain_method(m), []).append(m)
+        alias = {p: ms[0] for p, ms in variants.items() if len(ms) == 1 and (task, p) not in self.fresh}
         rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale | set(alias)))].copy()
         rows["method"] = rows.method.replace(alias)
         runs = drawn.groupby("method").run

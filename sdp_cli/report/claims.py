@@ -267,8 +267,7 @@ def ur5_long_actions(res) -> Row:
     for (task, h, t_a), g in loops.items():
         s, dp = g[g.method == "sdp"], g[g.method == "dp"]
         if s.empty:
-            f3 = res["fig3"]
-            begun = ((f3.method == "sdp") & (f3.task == task) & (f3.horizon == h) & (f3.t_a == t_a)).any()
+            begun = (task, int(h), int(t_a)) in _sdp_loops(res["fig3"])
             parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): SDP {'not finished' if begun else 'not run yet'}, "
                          f"DP {part(dp)}")
             continue
@@ -287,10 +286,15 @@ FIG3_LOOPS = tuple((task, h, t_a) for task in ("ur5-rinit", "ur5-rinit-rtgt")
                    for h, t_a in ((32, 16), (32, 31), (64, 16), (64, 31), (64, 63)))
 
 
+def _sdp_loops(d: pd.DataFrame) -> set[tuple[str, int, int]]:
+    """(task, T_h, T_a) of the loops with an SDP row in ``d``, finished or not."""
+    sdp = d[d.method == "sdp"]
+    return set(zip(sdp.task, sdp.horizon.astype(int), sdp.t_a.astype(int)))
+
+
 def _fig3_not_run(d: pd.DataFrame) -> str:
     """``"SDP not run on ..."``: Fig. 3's loops without an SDP row, per task as ``(T_h, T_a)`` pairs."""
-    sdp = d[d.method == "sdp"]
-    ran = set(zip(sdp.task, sdp.horizon.astype(int), sdp.t_a.astype(int)))
+    ran = _sdp_loops(d)
     todo = {}
     for task, h, t_a in FIG3_LOOPS:
         if (task, h, t_a) not in ran:
