@@ -28,7 +28,8 @@ runner = CliRunner()
 
 
 def _copy_reports(dst: Path) -> None:
-    for p in list(RESULTS.glob("*/all_runs.csv")) + list(RESULTS.glob("bench/*.csv")) + [RESULTS / "claims.yaml"]:
+    for p in (list(RESULTS.glob("*/all_runs.csv")) + list(RESULTS.glob("bench/*.csv"))
+              + list(RESULTS.glob("estimates/*.txt")) + [RESULTS / "claims.yaml"]):
         (dst / p.relative_to(RESULTS)).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(p, dst / p.relative_to(RESULTS))
 
@@ -301,6 +302,15 @@ def test_fig3_claim_per_horizon_and_action_length():
     assert r.verdict == "partly"
     assert r.detail == ("SDP not run on Fig. 3's (T_h, T_a) ur5-rinit (32, 31), (64, 16), (64, 31), (64, 63); "
                         "ur5-rinit-rtgt (32, 31), (64, 16), (64, 31), (64, 63)")
+    # with the saved estimate: each loop not run carries the hours of its runs without a row (SDP (32, 31) and
+    # DP (32, 31) of ur5-rinit: 3.0 h; DP (64, 63) has rows, so only SDP's 2.0 h there; none for a loop not estimated)
+    est = pd.DataFrame({"run": ["ur5-rinit-sdp-n50-s0-h32-ta31", "ur5-rinit-dp-n50-s0-h32-ta31",
+                                "ur5-rinit-sdp-n50-s0-h64-ta63", "ur5-rinit-dp-h64-ta63",
+                                "ur5-rinit-rtgt-sdp-n100-s0-h32-ta31"],
+                        "task": ["ur5-rinit"] * 4 + ["ur5-rinit-rtgt"], "total_cpu_h": [2.0, 1.0, 2.0, 5.0, 4.0]})
+    r = ur5_long_actions({"fig3": d, "estimates/fig3": est})
+    assert r.detail.startswith("SDP not run on Fig. 3's (T_h, T_a) ur5-rinit (32, 31) 3.0 h, (64, 16), (64, 31), "
+                               "(64, 63) 2.0 h; ur5-rinit-rtgt (32, 31) 4.0 h, (64, 16), (64, 31), (64, 63) (hours: ")
     # SDP partway on (64, 63): "not finished" there (it was "not run yet" while the run was on its third iteration)
     d = pd.concat([d, pd.DataFrame(rows).query("t_a == 63 and iteration < 2")])
     r = ur5_long_actions({"fig3": d})

@@ -90,6 +90,24 @@ def test_version_and_pipeline_help_list_what_exists():
     assert r.exit_code == 0 and f"({', '.join(names)} here)" in text
 
 
+def test_committed_estimates_read_back_to_their_printed_totals():
+    """Every saved estimate under results/estimates/ parses to as many runs as its header line says, and its
+    per-run hours add up to the printed one-process total."""
+    import re
+
+    from sdp_cli.report.estimates import read_estimate
+
+    files = sorted((ROOT / "results" / "estimates").glob("*.txt"))
+    assert files
+    for f in files:
+        text = f.read_text()
+        runs = int(re.search(r"estimate for '\w+': (\d+) runs", text).group(1))
+        total = float(re.search(r"total on cpu: ([\d.]+) h in one process", text).group(1))
+        df = read_estimate(f)
+        assert len(df) == runs and df.run.is_unique, f
+        assert df.total_cpu_h.sum() == pytest.approx(total, abs=1e-3 * runs + 0.01), f
+
+
 def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypatch):
     """small: 10 pendulum trajectories, T_h 16 -> E = ceil(10 * 84 / 16) = 53 chunks, one step of 53 per
     epoch; fig2: 30 double-pendulum trajectories -> E = 158 at B = 256."""
@@ -109,6 +127,17 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     assert (df.train_cpu_s > 0).all() and (df.to_s > 0).all()
     t = totals["cpu"]
     assert t["parallel_s"] == pytest.approx(max(t["sequential_s"] / 2, float(df.total_cpu_s.max())))
+    # saved as results/estimates/ keeps it, the reports read it back (hours printed to 3 decimals)
+    from sdp_cli.estimate import format_estimate
+    from sdp_cli.report.estimates import estimated_hours, read_estimate
+
+    saved = tmp_path / "small.txt"
+    saved.write_text("# 2026-11-26T20:00:00Z load 1.0\n" + format_estimate("small", df, totals) + "\n")
+    back = read_estimate(saved)
+    assert list(back.run) == list(df.run) and list(back.steps) == list(df.steps)
+    assert back.total_cpu_h.to_numpy() == pytest.approx(df.total_cpu_s.to_numpy() / 3600, abs=6e-4)
+    assert estimated_hours(saved) == dict(zip(back.run, back.total_cpu_h))
+    assert read_estimate(tmp_path / "missing.txt").empty and estimated_hours(tmp_path / "missing.txt") == {}
     # the CLI writes nothing (params.yaml untouched) and prints the totals
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pipelines").mkdir()

@@ -247,13 +247,22 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     rows += [{"run": "pendulum-sdp-n3-s1", "iteration": 0, "epochs": 1000}]          # its save_at checkpoint only
     rows += [{"run": "elsewhere-sdp-n1-s0", "iteration": 0, "epochs": 5}]             # not a run of the experiment
     cov = experiment_coverage(pd.DataFrame(rows), "x", tmp_path)
-    assert cov.to_dict("records") == [
+    assert cov.not_run_h.isna().all()                                 # no estimate given
+    assert cov.drop(columns="not_run_h").to_dict("records") == [
         {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1,
          "partway": "1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3)", "not_run": 0},
         {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1,
          "partway": "1 (pendulum-sdp-n3-s1 1000/2000 epochs)", "not_run": 2}]
     lines = coverage_lines(pd.DataFrame(rows), "x", tmp_path)
     assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
+    assert "| pendulum sdp, 2000 epochs | 4 | 1 | 1 (pendulum-sdp-n3-s1 1000/2000 epochs) | 2 |" in lines
+    # with a saved --estimate: the runs not run carry their hours (pendulum-sdp-n1-s1 and -n3-s0; the partway
+    # and finished runs' hours are not counted)
+    hours = {"pendulum-sdp-n1-s1": 1.25, "pendulum-sdp-n3-s0": 2.5, "pendulum-sdp-n3-s1": 9.0, "pendulum-sdp-n1-s0": 9.0}
+    lines = coverage_lines(pd.DataFrame(rows), "x", tmp_path, hours=hours, hours_from="../estimates/x.txt")
+    assert "| pendulum sdp, 2000 epochs | 4 | 1 | 1 (pendulum-sdp-n3-s1 1000/2000 epochs) | 2 (3.8 h) |" in lines
+    assert "| ur5-rinit sdp, dp h64-ta63 | 2 | 1 | 1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3) | 0 |" in lines
+    assert any("as saved in `../estimates/x.txt`" in ln for ln in lines)
     done = [{"run": r, "iteration": it, "epochs": e} for r, n, e in (
         ("ur5-rinit-sdp-n50-s0-h64-ta63", 3, 100), ("ur5-rinit-dp-n50-s0-h64-ta63", 3, 100),
         ("pendulum-sdp-n1-s0", 1, 2000), ("pendulum-sdp-n3-s0", 1, 2000), ("pendulum-sdp-n1-s1", 1, 2000),

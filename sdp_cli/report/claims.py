@@ -278,7 +278,8 @@ def ur5_long_actions(res) -> Row:
         parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}) at {it}: SDP {part(s)}" + (f"; DP {part(dp)}" if len(dp) else ""))
     full = {16, 31, 63} <= set(sdp.t_a.astype(int)) and sdp.task.nunique() >= 2
     verdict = "reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced"
-    return Row(" | ".join(parts), verdict, "; ".join(x for x in (_fig3_not_run(res["fig3"]), unfinished) if x))
+    return Row(" | ".join(parts), verdict, "; ".join(
+        x for x in (_fig3_not_run(res["fig3"], res.get("estimates/fig3")), unfinished) if x))
 
 
 #: Fig. 3's loops: UR5(1, 0) and UR5(1, 1), each at five (T_h, T_a) pairs
@@ -292,15 +293,29 @@ def _sdp_loops(d: pd.DataFrame) -> set[tuple[str, int, int]]:
     return set(zip(sdp.task, sdp.horizon.astype(int), sdp.t_a.astype(int)))
 
 
-def _fig3_not_run(d: pd.DataFrame) -> str:
-    """``"SDP not run on ..."``: Fig. 3's loops without an SDP row, per task as ``(T_h, T_a)`` pairs."""
+def _fig3_not_run(d: pd.DataFrame, est: pd.DataFrame | None = None) -> str:
+    """``"SDP not run on ..."``: Fig. 3's loops without an SDP row, per task as ``(T_h, T_a)`` pairs; with
+    ``est`` (the saved ``sdp pipeline fig3 --estimate`` table), each with the estimated hours of its runs
+    that have no row in ``d`` (SDP's and DP's where neither ran)."""
     ran = _sdp_loops(d)
     todo = {}
     for task, h, t_a in FIG3_LOOPS:
         if (task, h, t_a) not in ran:
-            todo.setdefault(task, []).append(f"({h}, {t_a})")
-    return ("SDP not run on Fig. 3's (T_h, T_a) " + "; ".join(f"{t} {', '.join(p)}" for t, p in todo.items())
-            if todo else "")
+            todo.setdefault(task, []).append(f"({h}, {t_a})" + _loop_hours(est, d, task, h, t_a))
+    if not todo:
+        return ""
+    hours = (" (hours: the loop's runs not made, `sdp pipeline fig3 --estimate` in one process on the CPU, "
+             "results/estimates/fig3.txt)" if est is not None and len(est) else "")
+    return "SDP not run on Fig. 3's (T_h, T_a) " + "; ".join(f"{t} {', '.join(p)}" for t, p in todo.items()) + hours
+
+
+def _loop_hours(est: pd.DataFrame | None, d: pd.DataFrame, task: str, h: int, t_a: int) -> str:
+    """``" 7.5 h"``: the estimated hours of loop ``(task, h, t_a)``'s runs without a row in ``d``
+    (run names end in ``-h<T_h>-ta<T_a>``, :func:`sdp_cli.experiment.group_run_names`); ``""`` without."""
+    if est is None or est.empty:
+        return ""
+    mine = est[(est.task == task) & est.run.str.endswith(f"-h{h}-ta{t_a}") & ~est.run.isin(set(d.get("run", ())))]
+    return f" {mine.total_cpu_h.sum():.1f} h" if len(mine) else ""
 
 
 #: claim id -> (experiments it needs, function)

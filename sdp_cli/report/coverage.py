@@ -18,10 +18,13 @@ from sdp_cli.experiment import check_group, group_run_names, load_experiment
 MAX_NAMED = 6
 
 
-def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path(".")) -> pd.DataFrame:
+def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
+                        hours: dict[str, float] | None = None) -> pd.DataFrame:
     """One row per group of experiment ``name``: ``group`` (task, methods, tag or epochs), ``runs``,
     ``finished`` (every iteration evaluated, the last at the group's epochs), ``partway`` (names with
-    ``k/n_algo`` iterations, or the epochs evaluated so far), ``not_run``.
+    ``k/n_algo`` iterations, or the epochs evaluated so far), ``not_run``, and ``not_run_h``: the estimated
+    hours of the runs not run, summed over those ``hours`` (``{run: hours}``, a saved ``--estimate``) has
+    (NaN when it has none of them).
     ``df``: the report's rows (``run``, ``iteration``)."""
     spec = load_experiment(name, root)
     reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
@@ -37,21 +40,30 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path(".")) -> 
                 for k in keys if k in reached and k not in done]
         label = f"{g['task']} {', '.join(g['methods'])}" + (f" {g['tag']}" if g["tag"] else f", {g['epochs']:g} epochs")
         named = ", ".join(part[:MAX_NAMED]) + (f" and {len(part) - MAX_NAMED} more" if len(part) > MAX_NAMED else "")
+        todo = [k for k in keys if k not in done and k not in reached]
+        known = [hours[k] for k in todo if k in (hours or {})]
         rows.append({"group": label, "runs": len(keys), "finished": len(done),
                      "partway": f"{len(part)}" + (f" ({named})" if part else ""),
-                     "not_run": len(keys) - len(done) - len(part)})
+                     "not_run": len(todo), "not_run_h": sum(known) if known else float("nan")})
     return pd.DataFrame(rows)
 
 
-def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path(".")) -> list[str]:
-    """The README section of :func:`experiment_coverage` (empty when every run finished)."""
-    cov = experiment_coverage(df, name, root)
+def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
+                   hours: dict[str, float] | None = None, hours_from: str = "") -> list[str]:
+    """The README section of :func:`experiment_coverage` (empty when every run finished); with ``hours``
+    (read from ``hours_from``), the runs not run carry their estimated hours."""
+    cov = experiment_coverage(df, name, root, hours)
     if cov.empty or (cov.finished == cov.runs).all():
         return []
     total, fin = int(cov.runs.sum()), int(cov.finished.sum())
     lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished", "",
              "Partway: iterations evaluated of the run's n_algo (stopped or still running); not run: no evaluation "
-             "yet. Figures and the ledger use what is here.", "",
+             "yet. Figures and the ledger use what is here." + (
+                 f" Hours of the runs not run: `sdp pipeline {name} --estimate` as saved in `{hours_from}` "
+                 "(every stage, one process on the CPU)." if hours else ""), "",
              "| group | runs | finished | partway | not run |", "|---|---|---|---|---|"]
-    lines += [f"| {r.group} | {r.runs} | {r.finished} | {r.partway} | {r.not_run} |" for r in cov.itertuples()]
+
+    def todo(r) -> str:
+        return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and r.not_run_h == r.not_run_h else "")
+    lines += [f"| {r.group} | {r.runs} | {r.finished} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]
     return lines

@@ -27,15 +27,20 @@ import pandas as pd
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
 from sdp_cli.report.claims import CLAIMS, Row
+from sdp_cli.report.estimates import read_estimate
 
 
 def load_results(results: Path) -> dict[str, pd.DataFrame]:
-    """``{experiment: all_runs.csv}`` and ``{"bench/<name>": csv}`` under ``results``."""
+    """``{experiment: all_runs.csv}``, ``{"bench/<name>": csv}`` and ``{"estimates/<experiment>": the saved
+    --estimate table}`` under ``results``."""
     out = {}
     for p in sorted(results.glob("*/all_runs.csv")):
         out[p.parent.name] = pd.read_csv(p)
     for p in sorted((results / "bench").glob("*.csv")):
         out[f"bench/{p.stem}"] = pd.read_csv(p)
+    for p in sorted((results / "estimates").glob("*.txt")):
+        if len(est := read_estimate(p)):
+            out[f"estimates/{p.stem}"] = est
     return out
 
 

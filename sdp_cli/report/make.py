@@ -34,6 +34,7 @@ from sdp_cli.data.artifacts import atomic_write_bytes, code_revision
 from sdp_cli.errors import SdpError
 from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
+from sdp_cli.report.estimates import estimated_hours
 from sdp_cli.report.figures import _loop_t_a, fig1, fig2a, fig2b, table2c
 from sdp_cli.report.timing import timing
 from sdp_cli.report.traj import trajectories
@@ -214,6 +215,7 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
            carried: list[str] = ()) -> Path:
+    df = method_variants(df)       # one row per variant drawn (Fig. 3's (T_h, T_a) loops, the K ablation)
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", _ints),
         n_traj=("n_traj", _ints),
@@ -230,7 +232,8 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
              "| task | method | seeds | n_traj | epochs | iterations | n_test | T_a |", "|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in budgets.itertuples(index=False)]
     if spec.is_file():
-        lines += coverage_lines(df, name)
+        saved = out.parent / "estimates" / f"{name}.txt"     # results/estimates/, beside the report
+        lines += coverage_lines(df, name, hours=estimated_hours(saved), hours_from=f"../estimates/{saved.name}")
     lines += list(carried)
     lines += revision_lines(df)
     lines += ["", "## Files", ""]
