@@ -64,6 +64,6 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
              "| group | runs | finished | partway | not run |", "|---|---|---|---|---|"]
 
     def todo(r) -> str:
-        return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and r.not_run_h == r.not_run_h else "")
+        return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and pd.notna(r.not_run_h) else "")
     lines += [f"| {r.group} | {r.runs} | {r.finished} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]
     return lines

@@ -2,7 +2,8 @@
 
 The ledger reads what ``sdp report`` wrote, never a run folder: ``results/<experiment>/all_runs.csv``
 (one row per run, iteration and T_a), ``results/bench/*.csv`` (speed ratios measured side by side by
-the ``bench/`` scripts) and ``results/claims.yaml`` (hand-written: each claim's text, the paper's number,
+the ``bench/`` scripts), ``results/estimates/*.txt`` (saved ``sdp pipeline NAME --estimate`` tables: the
+hours of runs not made) and ``results/claims.yaml`` (hand-written: each claim's text, the paper's number,
 the experiments it needs, the estimate of a run not made, and the notes that explain a difference).
 Our numbers and the verdicts are computed by the rules of :mod:`sdp_cli.report.claims`, the same for
 every claim:
@@ -88,8 +89,9 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
     res = load_results(results)
     rows = ledger_rows(res, claims)
     lines = ["# The paper's claims beside our numbers", "",
-             "Written by `sdp report --ledger results/PAPER.md` from `results/*/all_runs.csv`, `results/bench/*.csv`",
-             "and `results/claims.yaml` (the claims, the paper's numbers and the notes); do not edit by hand.",
+             "Written by `sdp report --ledger results/PAPER.md` from `results/*/all_runs.csv`, `results/bench/*.csv`,",
+             "`results/estimates/*.txt` (hours of runs not made) and `results/claims.yaml` (the claims, the paper's",
+             "numbers and the notes); do not edit by hand.",
              "Rules (the same for every claim, `sdp_cli/report/verdicts.py`): means over seeds with 95% intervals; a",
              "ratio claim is *reproduced* when ours keeps at least half of the paper's effect (r - 1), *partly* with",
              "at least a tenth of it; a policy *solves* a task at >= 50% success; runs that have not reached the",
