@@ -184,3 +184,27 @@ def test_a_carried_loop_keeps_its_rows_once_another_variant_of_its_method_is_dra
     fresh_plain = Carried(tmp_path, frozenset({"dp-h64"}), frozenset({("ur5", "dp")}))
     assert fresh_plain.rows("old.csv", "ur5", drawn[drawn.run == "dp-h64"]).empty
     assert [plain_method(m) for m in ("sdp-K5-h32-ta16", "pddp+s-K2", "dp-h64-ta63", "sdp")] == ["sdp", "pddp+s", "dp", "sdp"]
+
+
+def test_readme_tables_name_the_variant_each_run_is_drawn_as(tmp_path, monkeypatch):
+    """Runs of one method that the figures draw apart (here K 2 and K 5; Fig. 3's (T_h, T_a) loops alike) are
+    apart in the README too: budgets, code revisions and kept runs per variant (they were one ``sdp`` row, and
+    a revision row could not say which loop it meant)."""
+    import shutil
+
+    monkeypatch.chdir(tmp_path)
+    runs, out = tmp_path / "runs", tmp_path / "results" / "exp"
+    for run, k, cost in (("k2-sdp-s0", 2, 10.0), ("k5-sdp-s0", 5, 12.0)):
+        d = runs / run / "it0" / "eval"
+        d.mkdir(parents=True)
+        write_evaluation([{**ROW, "k_rollout": k, "run": run, "iteration": 0, "policy_cost_mean": cost}],
+                         d / "eval.csv", [NO_FILES])
+    make_report(runs, out, "exp")
+    readme = (out / "README.md").read_text()
+    assert "| pendulum | sdp-K2 | 0 | 3 | 700 | 1 | 20 | 8 |" in readme
+    assert "| pendulum | sdp-K5 | 0 | 3 | 700 | 1 | 20 | 8 |" in readme and "| pendulum | sdp | " not in readme
+    assert {"sdp-K2", "sdp-K5"} <= {ln.split(" | ")[1] for ln in readme.splitlines() if ln.endswith("` |")}
+    shutil.rmtree(runs / "k2-sdp-s0")
+    make_report(runs, out, "exp", keep_missing=True)
+    readme = (out / "README.md").read_text()
+    assert "| pendulum | sdp-K2 | 1 |" in readme and "| pendulum | sdp | " not in readme

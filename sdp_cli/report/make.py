@@ -113,7 +113,8 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
 
         rows = pd.concat([_loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
         write_metrics(metrics_summary(rows), Path(metrics))
-    written.append(_index(df, runs, out, experiment, written, carried_lines(df, carried, kept_traj)))
+    kept_lines = carried_lines(method_variants(df), carried, kept_traj)     # per variant, as the figures draw
+    written.append(_index(df, runs, out, experiment, written, kept_lines))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
         written.append(_top_index(out.resolve().parent))
