@@ -113,8 +113,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
 
         rows = pd.concat([_loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
         write_metrics(metrics_summary(rows), Path(metrics))
-    kept_lines = carried_lines(method_variants(df), carried, kept_traj)     # per variant, as the figures draw
-    written.append(_index(df, runs, out, experiment, written, kept_lines))
+    written.append(_index(fdf, runs, out, experiment, written, carried_lines(fdf, carried, kept_traj)))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
         written.append(_top_index(out.resolve().parent))
@@ -216,7 +215,7 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
            carried: list[str] = ()) -> Path:
-    df = method_variants(df)       # one row per variant drawn (Fig. 3's (T_h, T_a) loops, the K ablation)
+    """README.md of the report; ``df``: its rows with methods named as drawn (:func:`method_variants`)."""
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", _ints),
         n_traj=("n_traj", _ints),
