@@ -37,24 +37,63 @@ def load_experiment(name: str, root: Path = Path(".")) -> dict:
     return spec
 
 
+#: the type of each group key: "int", "int?" (or null), "[int]" (a list of), "str", "bool", "dict"
+GROUP_TYPES = {"task": "str", "methods": "[str]", "seeds": "[int]", "n_traj": "[int]", "n_algo": "int",
+               "epochs": "int", "save_at": "[int]", "horizon": "int", "t_a": "int?", "eval_t_a": "[int]",
+               "eval_t_a_last": "[int]", "k_rollout": "int?", "n_test": "int", "test_seed": "int",
+               "max_iter": "int", "single_shooting": "bool", "train": "dict", "tag": "str?",
+               "n_traj_schedule": "[int]?"}
+_PY = {"int": int, "str": str, "bool": bool, "dict": dict, "float": (int, float)}
+
+
+def type_ok(value, spec: str) -> bool:
+    """``value`` has the type ``spec`` of :data:`GROUP_TYPES` (a bool is not an int)."""
+    if spec.endswith("?"):
+        return value is None or type_ok(value, spec[:-1])
+    if spec.startswith("["):
+        return isinstance(value, list) and all(type_ok(v, spec[1:-1]) for v in value)
+    if spec in ("int", "float") and isinstance(value, bool):
+        return False
+    return isinstance(value, _PY[spec])
+
+
+def describe_type(spec: str) -> str:
+    words = {"int": "an integer", "str": "a string", "bool": "true or false", "dict": "a mapping",
+             "float": "a number"}
+    if spec.endswith("?"):
+        return describe_type(spec[:-1]) + " (or null)"
+    if spec.startswith("["):
+        return "a list of " + {"int": "integers", "str": "strings", "float": "numbers"}[spec[1:-1]] + ", e.g. [1, 2]"
+    return words[spec]
+
+
+def group_where(name: str, gi: int) -> str:
+    """How an error names a group: the file and the group's index."""
+    return f"{PIPELINES_DIR / (name + '.yaml')}, group {gi}"
+
+
 def check_group(name: str, gi: int, raw: dict) -> dict:
     """Group ``gi`` of experiment ``name`` with the defaults filled in (``SdpError`` on unknown keys;
     the ``train:`` options are checked by :func:`sdp_cli.pipeline.loop_configs`)."""
+    where = group_where(name, gi)
     if not isinstance(raw, dict):
-        raise SdpError(f"experiment {name!r}, group {gi}: expected a mapping, got {raw!r}")
+        raise SdpError(f"{where}: expected a mapping, got {raw!r}")
     unknown = set(raw) - set(GROUP_DEFAULTS) - {"task"}
     if unknown:
-        raise SdpError(f"experiment {name!r}, group {gi}: unknown keys {sorted(unknown)}")
+        raise SdpError(f"{where}: unknown keys {sorted(unknown)}")
     if "task" not in raw:
-        raise SdpError(f"experiment {name!r}, group {gi}: 'task' is required")
+        raise SdpError(f"{where}: 'task' is required")
+    for key, value in raw.items():
+        if not type_ok(value, GROUP_TYPES[key]):
+            raise SdpError(f"{where}, key {key!r}: must be {describe_type(GROUP_TYPES[key])}, got {value!r}")
     g = {**GROUP_DEFAULTS, **raw}
     sched = g["n_traj_schedule"]
     if sched is not None:
         if not (isinstance(sched, list) and sched and all(isinstance(n, int) and n > 0 for n in sched)):
-            raise SdpError(f"experiment {name!r}, group {gi}: n_traj_schedule must be a list of positive integers "
+            raise SdpError(f"{where}, key 'n_traj_schedule': must be a list of positive integers "
                            f"(trajectories per iteration), got {sched!r}")
         if "n_traj" in raw:
-            raise SdpError(f"experiment {name!r}, group {gi}: give n_traj (a sweep) or n_traj_schedule (per "
+            raise SdpError(f"{where}: give n_traj (a sweep) or n_traj_schedule (per "
                            "iteration), not both")
         g["n_traj"] = [sched[0]]   # the run's name carries the first iteration's count
     return g

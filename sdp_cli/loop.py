@@ -62,8 +62,12 @@ class LoopConfig:
     save_at: tuple = ()            # extra epoch counts (< epochs) whose checkpoints are evaluated too (Fig. 1)
 
     def __post_init__(self):
+        from sdp_cli.seeds import check_loop_seed, check_seed
+
         if self.n_algo <= 0:
             raise SdpError(f"n_algo must be > 0, got {self.n_algo}")
+        check_loop_seed(self.seed, "seed", self.n_algo)
+        check_seed(self.test_seed, "test seed")
         if not self.n_traj or min(self.n_traj) <= 0:
             raise SdpError(f"n_traj must be positive, got {list(self.n_traj)}")
         if self.epochs <= 0:
@@ -111,22 +115,25 @@ class LoopConfig:
 
 # settings that may change when a loop is resumed (where it runs, how much is evaluated)
 RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler",
-                    "single_shooting", "eval_refine", "code_rev")
+                    "single_shooting", "eval_refine", "code_rev", "results_version")
 
 
 def _config_json(cfg: LoopConfig) -> str:
+    from sdp_cli import RESULTS_VERSION
     from sdp_cli.data.artifacts import code_revision
 
-    return pd.Series({**asdict(cfg), "code_rev": code_revision()}).to_json(indent=2)
+    return pd.Series({**asdict(cfg), "code_rev": code_revision(),
+                      "results_version": RESULTS_VERSION}).to_json(indent=2)
 
 
-def check_resume(cfg: LoopConfig, out: Path, same_code: bool = False) -> None:
+def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None:
     """Refuse to resume ``out`` with settings that would mix two experiments in one folder.
 
     ``loop_config.json`` also records the code revision (:func:`sdp_cli.data.artifacts.code_revision`)
-    of the last (re)start: ``sdp loop`` resumes across code revisions (the artifacts record theirs);
-    with ``same_code`` (the DVC stage, whose code dependencies changed) another revision counts as
-    other settings."""
+    and the results version (:data:`sdp_cli.RESULTS_VERSION`) of the last (re)start: ``sdp loop``
+    resumes across both (the artifacts record their revision); with ``same_results`` (the DVC stage)
+    another results version (none recorded: version 1) counts as other settings. A code revision alone
+    never does: a comment edit must not restart 70 hours of runs."""
     import json
 
     path = out / "loop_config.json"
@@ -141,9 +148,9 @@ def check_resume(cfg: LoopConfig, out: Path, same_code: bool = False) -> None:
         raise SdpError(f"corrupt loop config {path}: {e}") from None
     new = json.loads(_config_json(cfg))
     bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
-    if same_code and old.get("code_rev") != new["code_rev"]:
-        bad.append("code_rev")
-        old.setdefault("code_rev", None)
+    if same_results and old.get("results_version", 1) != new["results_version"]:
+        bad.append("results_version")
+        old.setdefault("results_version", 1)
     if bad:
         diffs = ", ".join(f"{k}={old[k]!r} (now {new[k]!r})" for k in bad)
         raise SdpError(f"{out} holds a loop run with other settings: {diffs}; use another --out")

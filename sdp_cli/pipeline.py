@@ -39,7 +39,7 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.experiment import check_group, load_experiment, run_name
+from sdp_cli.experiment import check_group, group_where, load_experiment, run_name, type_ok
 
 #: TrainConfig fields a group sets elsewhere (``train:`` may set the others)
 _GROUP_OWNED = {"method", "epochs", "seed", "T_h", "save_at"}
@@ -52,31 +52,56 @@ def train_option_names() -> set[str]:
     return {f.name for f in fields(TrainConfig)} - _GROUP_OWNED
 
 
+def train_option_type(name: str) -> str:
+    """The :func:`sdp_cli.experiment.type_ok` spec of a TrainConfig field, from its annotation."""
+    from sdp_cli.policy.config import TrainConfig
+
+    ann = str({f.name: f.type for f in fields(TrainConfig)}[name]).replace(" ", "")
+    opt = "|None" in ann
+    base = ann.replace("|None", "")
+    spec = {"int": "int", "float": "float", "bool": "bool", "str": "str", "list": "[float]", "tuple": "[float]"}[base]
+    return spec + ("?" if opt else "")
+
+
 def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F821 (sdp_cli.loop.LoopConfig)
     """``{run name: LoopConfig}`` of every run of an experiment, each validated (task, method,
-    options, T_a) before anything runs."""
-    from sdp_cli.loop import LoopConfig
+    options, T_a) before anything runs; an error names the file, the group and the key."""
+    from sdp_cli.experiment import describe_type
 
     runs = {}
     for gi, raw in enumerate(spec["groups"]):
         g = check_group(name, gi, raw)
+        where = group_where(name, gi)
         bad = set(g["train"] or {}) - train_option_names()
         if bad:
-            raise SdpError(f"experiment {name!r}, group {gi}: unknown train option(s) {sorted(bad)}; known: "
+            raise SdpError(f"{where}: unknown train option(s) {sorted(bad)}; known: "
                            f"{', '.join(sorted(train_option_names()))}")
+        for key, value in (g["train"] or {}).items():
+            if not type_ok(value, train_option_type(key)):
+                raise SdpError(f"{where}, key 'train.{key}': must be {describe_type(train_option_type(key))}, "
+                               f"got {value!r}")
         for method, seed, n_traj in itertools.product(g["methods"], g["seeds"], g["n_traj"]):
             key = run_name(g["task"], method, n_traj, seed, g["tag"])
             if key in runs:
                 raise SdpError(f"experiment {name!r}: run {key} appears in two groups (give them different `tag`s)")
-            runs[key] = LoopConfig(
-                task=g["task"], method=method, n_algo=g["n_algo"],
-                n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), epochs=g["epochs"],
-                seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
-                eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
-                test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
-                train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
-                save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
+            try:
+                runs[key] = _loop_config(g, method, seed, n_traj)
+            except SdpError as e:
+                raise SdpError(f"{where}: {e}") from None
     return runs
+
+
+def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
+    from sdp_cli.loop import LoopConfig
+
+    return LoopConfig(
+        task=g["task"], method=method, n_algo=g["n_algo"],
+        n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), epochs=g["epochs"],
+        seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
+        eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
+        test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
+        train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
+        save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
 
 
 def expand(name: str, spec: dict) -> dict:

@@ -28,15 +28,15 @@ import torch
 
 from sdp_cli.data.artifacts import portable_path, save_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.seeds import TEST_SEED_BASE, check_seed  # noqa: F401 (TEST_SEED_BASE re-exported)
 from sdp_cli.tasks import Task
 
 DIVERGENCE_COST = 1e5
 #: a state coordinate beyond this (rad, rad/s, m, m/s) is a diverged simulation: the faithful
 #: pendulum costs do not see velocities, so a cost threshold alone misses a spinning pendulum
 DIVERGENCE_STATE = 1e4
-#: seed offset of the test set: test xi come from rng([TEST_SEED_BASE + seed, i]), disjoint
-#: from training collections that use small seeds rng([seed, i])
-TEST_SEED_BASE = 1_000_000
+# the test set: xi from rng([TEST_SEED_BASE + seed, i]), disjoint from training collections,
+# whose seeds stay below TEST_SEED_BASE (sdp_cli.seeds)
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,9 @@ class RolloutConfig:
     seed: int = 0
     t_a: int | None = None  # default T_h - T_o
     k_rollout: int | None = None  # default K
+
+    def __post_init__(self):
+        check_seed(self.seed, "test seed")
 
     def validate(self, policy) -> "RolloutConfig":
         if self.n <= 0:
@@ -170,7 +173,7 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     arrays = {**traj, **ev, "xi": xis}
     ck_cfg = policy.config.to_dict() if hasattr(policy.config, "to_dict") else {}
     path = save_npz(out, arrays, kind="rollout", config={**asdict(config), "policy": portable_path(policy_path, Path(out).parent)},
-                    device=str(policy.device), task=policy.task_name, task_options=getattr(policy, "task_options", {}) or {},
+                    device=str(policy.device), task=policy.task_name, task_options=policy.task_options,
                     task_params=task.params(), method=policy.method, policy_config=ck_cfg,
                     policy_epoch=policy.checkpoint_epoch, policy_dataset=_dataset_record(policy.dataset_info, out),
                     timing={"rollout_time": wall})

@@ -69,10 +69,10 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     """Run (or resume) every run of experiment ``name`` under ``out``; their summaries, one table.
 
     ``only``: run names to run (default all). ``restart_changed``: a run folder holding a run with
-    other settings (the experiment file changed) or made by other code (another code revision) is
-    deleted and the run starts over, as DVC does with the outputs of a changed stage; otherwise other
-    settings are refused before anything runs and other code is resumed. ``job``: the
-    per-run function (tests substitute one that kills its worker once)."""
+    other settings (the experiment file changed) or of another results version
+    (:data:`sdp_cli.RESULTS_VERSION`) is moved aside (:func:`supersede`, never deleted) and the run
+    starts over; otherwise other settings are refused before anything runs and another results version
+    is resumed. ``job``: the per-run function (tests substitute one that kills its worker once)."""
     from sdp_cli.executor import check_executor_options, error_status, make_executor
     from sdp_cli.loop import check_resume
     from sdp_cli.experiment import load_experiment
@@ -90,14 +90,13 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     out = Path(out)
     for key, cfg in runs.items():   # a folder holding other settings: refused (or restarted) before any work
         try:
-            check_resume(cfg, out / key, same_code=restart_changed)
-        except SdpError:
+            check_resume(cfg, out / key, same_results=restart_changed)
+        except SdpError as e:
             if not restart_changed:
                 raise
-            import shutil
-
-            log(f"  {key}: its folder holds a run with other settings; starting it over")
-            shutil.rmtree(out / key)
+            moved = supersede(out / key)
+            log(f"  {key}: {str(e).split(': ', 1)[-1].removesuffix('; use another --out')}; moved the old run "
+                f"to {moved} and starting it over")
     keys = list(runs)
     argsets = [(asdict(runs[k]), str(out / k), device) for k in keys]
     tables, failed = [], []
@@ -116,6 +115,31 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
         raise SdpError(f"{len(failed)} of {len(keys)} runs failed: {'; '.join(failed)}; the others are kept, "
                        "re-run to retry the failed ones")
     return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+
+
+def superseded_dir(out: Path) -> Path:
+    """Where :func:`supersede` moves the runs of ``out`` (``runs/NAME`` -> ``runs/superseded/NAME``):
+    beside the experiment's folder, outside the DVC output, so DVC's cache does not grow with them."""
+    out = Path(out).resolve()
+    return out.parent / "superseded" / out.name
+
+
+def supersede(run_dir: Path) -> Path:
+    """Move a run folder aside (never delete it): to ``superseded/<experiment>/<run>-<UTC time>``."""
+    import time
+
+    run_dir = Path(run_dir)
+    dest_root = superseded_dir(run_dir.parent)
+    dest_root.mkdir(parents=True, exist_ok=True)
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    dest, n = dest_root / f"{run_dir.name}-{stamp}", 1
+    while dest.exists():
+        n += 1
+        dest = dest_root / f"{run_dir.name}-{stamp}-{n}"
+    import shutil
+
+    shutil.move(str(run_dir), str(dest))   # a rename on one file system
+    return dest
 
 
 def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.DataFrame:

@@ -177,3 +177,89 @@ def test_kill_9_of_collect_takes_its_workers_along(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+@pytest.mark.parametrize("seed", ["-1", "1000000"])
+@pytest.mark.parametrize("cmd", ["collect", "train", "loop", "rollout", "loop-test-seed"])
+def test_one_rule_for_seeds_before_anything_is_written(run, tmp_path, cmd, seed):
+    """Seeds are integers in [0, 1e6) (test instances come from 1e6 + seed; a loop's collections from
+    1000 seed + k, so its seed is below 1000) in every command, checked before any file is written
+    (at d8ae24d a negative seed was a numpy traceback in collect, loop and rollout, accepted by train,
+    and loop left its folder behind)."""
+    out = tmp_path / "out"
+    args = {"collect": ["collect", "--task", "pendulum", "--n-traj", "1", "--seed", seed, "--out", str(out / "d.npz")],
+            "train": ["train", "--data", str(run["data"]), "--method", "dp", "--epochs", "1", "--horizon", "8",
+                      "--seed", seed, "--out", str(out)],
+            "loop": ["loop", "--task", "pendulum", "--method", "dp", "--seed", seed, "--out", str(out)],
+            "loop-test-seed": ["loop", "--task", "pendulum", "--method", "dp", "--test-seed", seed, "--out", str(out)],
+            "rollout": ["rollout", "--policy", str(run["pol"]), "--n", "1", "--seed", seed, "--out", str(out / "r.npz")],
+            }[cmd]
+    _fails_cleanly(runner.invoke(app, args), "seed must be an integer in [0, ")
+    assert not out.exists()
+    if cmd == "loop":
+        _fails_cleanly(runner.invoke(app, args[:-4] + ["--seed", "1000", "--out", str(out)]), "[0, 999]")
+
+
+def test_train_save_at_beyond_epochs_is_refused(run, tmp_path):
+    """`sdp train --save-at 5 --epochs 2` succeeded silently at 38d2c04 while `sdp loop` refused it."""
+    for save in ("5", "2", "0"):
+        r = runner.invoke(app, ["train", "--data", str(run["data"]), "--method", "dp", "--epochs", "2", "--horizon",
+                                "8", "--save-at", save, "--out", str(tmp_path / "x")])
+        _fails_cleanly(r, "save_at epochs must be in (0, epochs = 2)")
+        assert not (tmp_path / "x").exists()
+    r = runner.invoke(app, ["loop", "--task", "pendulum", "--method", "dp", "--epochs", "2", "--save-at", "5",
+                            "--out", str(tmp_path / "x")])
+    _fails_cleanly(r, "save_at epochs must be in (0, epochs = 2)")
+
+
+GOOD_GROUP = {"task": "pendulum", "methods": ["dp"], "seeds": [0], "n_traj": [2], "epochs": 2, "horizon": 8, "t_a": 4}
+
+
+@pytest.mark.parametrize("key,value,msg", [
+    ("seeds", 3, "key 'seeds': must be a list of integers"),
+    ("n_traj", 5, "key 'n_traj': must be a list of integers"),
+    ("epochs", "many", "key 'epochs': must be an integer"),
+    ("save_at", 5, "key 'save_at': must be a list of integers"),
+    ("methods", "dp", "key 'methods': must be a list of strings"),
+    ("single_shooting", "yes", "key 'single_shooting': must be true or false"),
+    ("t_a", 2.5, "key 't_a': must be an integer (or null)"),
+    ("seeds", [-1], "seed must be an integer in [0, 999]"),
+    ("train", {"batch_size": "big"}, "key 'train.batch_size': must be an integer"),
+    ("train", {"lr": "fast"}, "key 'train.lr': must be a number"),
+])
+@pytest.mark.parametrize("mode", ["--estimate", "--run", "select"])
+def test_mistyped_experiment_files_name_file_group_and_key(tmp_path, monkeypatch, key, value, msg, mode):
+    """At 38d2c04 each of these was a traceback from `sdp pipeline NAME --estimate` / `--run`."""
+    import yaml
+
+    (tmp_path / "pipelines").mkdir()
+    groups = [GOOD_GROUP, {**GOOD_GROUP, "tag": "b", key: value}]
+    (tmp_path / "pipelines" / "bad.yaml").write_text(yaml.safe_dump({"groups": groups}))
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, ["pipeline", "bad"] + ([mode] if mode != "select" else []))
+    _fails_cleanly(r, "pipelines/bad.yaml, group 1", msg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipelines"]
+
+
+def test_task_options_survive_policy_rollout_and_refine(tmp_path):
+    """A task built with options (pendulum, T = 24): the policy keeps them, its rollouts record them and
+    `sdp refine` accepts the rollouts (at 38d2c04 the policy dropped them and refine refused its own
+    rollouts: 'task parameters differ')."""
+    from sdp_cli.data.artifacts import load_npz
+    from sdp_cli.policy import load_policy
+
+    data, _ = collect(CollectConfig(task="pendulum", n_traj=2, seed=0, task_options={"T": 24}), tmp_path / "d.npz",
+                      workers=1)
+    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **TINY, "method": "dp", "epochs": 1})
+    train(data, tmp_path / "pol", cfg, device="cpu", progress=False, log=lambda s: None)
+    pol = load_policy(tmp_path / "pol")
+    assert pol.task_options == {"T": 24} and pol.task.T == 24
+    r = runner.invoke(app, ["rollout", "--policy", str(tmp_path / "pol"), "--n", "2", "--out", str(tmp_path / "r.npz")])
+    assert r.exit_code == 0, r.output
+    _, meta = load_npz(tmp_path / "r.npz", kind="rollout")
+    assert meta["task_options"] == {"T": 24}
+    r = runner.invoke(app, ["refine", "--rollouts", str(tmp_path / "r.npz"), "--out", str(tmp_path / "f.npz"),
+                            "--workers", "1", "--no-baseline"])
+    assert r.exit_code == 0, r.output
+    arrays, meta = load_npz(tmp_path / "f.npz", kind="dataset")
+    assert meta["task_options"] == {"T": 24} and arrays["U"].shape[1] == 24

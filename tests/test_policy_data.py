@@ -41,31 +41,47 @@ def closed_loop(task, arrays, n, t, dx, steps):
 
 
 def chunk_fd(task, arrays, n, t, action, eps=1e-5):
-    """Central FD of tau_0 w.r.t. the tangent of x_t: (T_h, A, ndx)."""
+    """Central FD of tau_0 w.r.t. the tangent of x_t: (T_h, A, ndx). The closed loop runs to the episode's
+    end (T) at most; rows past it hold the last control (torque) or the final state's action."""
+    steps = min(T_H - 1, T - t)
     cols = []
     for i in range(task.ndx):
         d = np.zeros(task.ndx)
         d[i] = eps
         tau = []
         for s in (1, -1):
-            xs, us = closed_loop(task, arrays, n, t, s * d, T_H - 1)
+            xs, us = closed_loop(task, arrays, n, t, s * d, steps)
             if action == "u":
                 u_prev = arrays["U"][n, t - 1] if t > 0 else np.zeros(task.nu)
-                tau.append(np.vstack([u_prev[None], us[: T_H - 1]]))
+                rows = np.vstack([u_prev[None], us])
             else:
-                tau.append(task.state_action(xs[:T_H]))
+                rows = task.state_action(xs)
+            tau.append(np.vstack([rows, np.repeat(rows[-1:], T_H - len(rows), 0)]))
         cols.append((tau[0] - tau[1]) / (2 * eps))
     return np.stack(cols, -1)
 
 
-@pytest.mark.parametrize("t", [0, 5, T - T_H + 1])
+def held(a, t, length=T_H):
+    """Rows t .. t + length - 1 of a sequence, those past its end held at its last row."""
+    return a[np.minimum(np.arange(t, t + length), len(a) - 1)]
+
+
+def test_every_replanning_time_is_a_training_start(loaded):
+    """Starts 0 .. T - 1 (every time a rollout can replan), each once per trajectory."""
+    arrays, _, task = loaded
+    ds = ChunkDataset(task, arrays, T_H)
+    assert ds.n_starts == T and len(ds) == 3 * T
+    assert ds.epoch_size() == int(np.ceil(3 * (T - T_H) / T_H))        # the paper's E = |D| (T - T_h) / T_h
+
+
+@pytest.mark.parametrize("t", [0, 5, T - T_H + 1, T - T_H + 2, T - 3, T - 1])
 def test_torque_chunk_jacobian_matches_closed_loop_fd(loaded, t):
     arrays, _, task = loaded
     ds = ChunkDataset(task, arrays, T_H)
     n = 1
     item = ds[n * ds.n_starts + t]
     assert item["t"] == t
-    np.testing.assert_allclose(item["tau0"][1:], arrays["U"][n, t: t + T_H - 1])
+    np.testing.assert_allclose(item["tau0"][1:], held(arrays["U"][n], t, T_H - 1))   # held at u_{T-1}
     np.testing.assert_allclose(item["a_hist"][0], arrays["U"][n, t - 1] if t else 0.0)
     np.testing.assert_allclose(item["obs"][0], np.r_[arrays["X"][n, t], arrays["U"][n, t - 1] if t else 0.0])
     J = item["jac"]
@@ -76,14 +92,14 @@ def test_torque_chunk_jacobian_matches_closed_loop_fd(loaded, t):
     assert np.abs(J[1:]).max() > 1e-2  # not trivially zero
 
 
+@pytest.mark.parametrize("t", [4, T - T_H + 2, T - 1])
 @pytest.mark.parametrize("action", ["x", "q", "v"])
-def test_state_chunk_jacobian_matches_closed_loop_fd(loaded, action):
+def test_state_chunk_jacobian_matches_closed_loop_fd(loaded, action, t):
     arrays, _, task = loaded
     ds = ChunkDataset(task, arrays, T_H, action=action)
-    n, t = 2, 4
+    n = 2
     item = ds[n * ds.n_starts + t]
-    np.testing.assert_allclose(item["tau0"], ds.task.state_action(arrays["X"][n, t: t + T_H]) if action != "x"
-                               else arrays["X"][n, t: t + T_H])
+    np.testing.assert_allclose(item["tau0"], ds.task.state_action(held(arrays["X"][n], t)))   # held at g(x_T)
     fd = chunk_fd(ds.task, arrays, n, t, action)
     np.testing.assert_allclose(item["jac"], fd, atol=2e-4 * max(1.0, np.abs(fd).max()))
     np.testing.assert_allclose(item["jac"][0], ds.task.state_action_jacobian(arrays["X"][n, t]))
@@ -165,7 +181,7 @@ def test_normalizer_round_trip_and_state_dict(loaded):
 def test_epoch_sizes(loaded):
     arrays, _, task = loaded
     ds = ChunkDataset(task, arrays, T_H)
-    assert len(ds) == 3 * (T - T_H + 2)
+    assert len(ds) == 3 * T                     # starts 0 .. T - 1 (test_every_replanning_time_is_a_training_start)
     assert ds.epoch_size() == int(np.ceil(3 * (T - T_H) / T_H))
     pairs = PairDataset(task, arrays)
     assert len(pairs) == pairs.epoch_size() == 3 * T

@@ -130,25 +130,45 @@ def test_cli_run_errors_are_one_line(root, monkeypatch):
     assert r.exit_code == 1 and "exclude each other" in r.output
 
 
-def test_dvc_mode_restarts_runs_of_other_code_or_settings(root, sequential, tmp_path):
-    """What the DVC stage runs (--restart-changed): a run folder made by another code revision (its code
-    dependencies changed) is started over, not resumed into stale artifacts; plain resumes keep it."""
+def test_dvc_mode_never_deletes_and_restarts_only_another_results_version(root, sequential, tmp_path):
+    """What the DVC stage runs (--restart-changed): another code revision alone resumes the run (a comment
+    edit must not restart it); another results version, or none recorded (older runs), moves the run to
+    superseded/<experiment>/ with its files intact and starts it over. No run is ever deleted."""
     import json
     import shutil
 
-    out = tmp_path / "runs"
+    from sdp_cli import RESULTS_VERSION
+    from sdp_cli.runner import superseded_dir
+
+    out = tmp_path / "runs" / "tiny"
     shutil.copytree(sequential[0] / RUNS[0], out / RUNS[0])
     cfg = out / RUNS[0] / "loop_config.json"
+    assert json.loads(cfg.read_text())["results_version"] == RESULTS_VERSION
     cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "code_rev": "0" * 40}))
     ck = out / RUNS[0] / "it0" / "policy" / "checkpoint.pt"
     before = ck.stat().st_mtime_ns
-    run_group("tiny", out, workers=1, device="cpu", root=root, only=[RUNS[0]], log=lambda s: None)
-    assert ck.stat().st_mtime_ns == before                      # `sdp loop` semantics: resumed, nothing redone
-    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "code_rev": "0" * 40}))
+    for restart in (False, True):                                  # other code: resumed, nothing redone
+        run_group("tiny", out, workers=1, device="cpu", root=root, only=[RUNS[0]], restart_changed=restart,
+                  log=lambda s: None)
+        assert ck.stat().st_mtime_ns == before
+    old = {k: v for k, v in json.loads(cfg.read_text()).items() if k != "results_version"}   # a version-1 run
+    cfg.write_text(json.dumps(old))
+    from sdp_cli.experiment import load_experiment
+    from sdp_cli.loop import check_resume
+    from sdp_cli.pipeline import loop_configs
+
+    with pytest.raises(SdpError, match="results_version=1"):
+        check_resume(loop_configs("tiny", load_experiment("tiny", root))[RUNS[0]], out / RUNS[0], same_results=True)
+    files = sorted(p.relative_to(out / RUNS[0]) for p in (out / RUNS[0]).rglob("*"))
     logs = []
     df = run_group("tiny", out, workers=1, device="cpu", root=root, only=[RUNS[0]], restart_changed=True,
                    log=logs.append)
-    assert any("starting it over" in s for s in logs) and ck.stat().st_mtime_ns != before
+    moved = list(superseded_dir(out).iterdir())
+    assert len(moved) == 1 and moved[0].name.startswith(RUNS[0] + "-")
+    assert sorted(p.relative_to(moved[0]) for p in moved[0].rglob("*")) == files      # kept, every file
+    assert superseded_dir(out) == tmp_path / "runs" / "superseded" / "tiny"             # outside the DVC output
+    assert any("results_version" in s and str(moved[0]) in s for s in logs)
+    assert ck.stat().st_mtime_ns != before
     pd.testing.assert_frame_equal(_table(df), _table(sequential[1][sequential[1].run == RUNS[0]]))
 
 

@@ -8,13 +8,21 @@ Conventions (``T_o = 1``), for a chunk starting at time ``t`` with current state
 - state control (``a = g(x)``): ``a_hist = g(x_t)``, ``tau_0 = (g(x_t), ..., g(x_{t+T_h-1}))``,
   row ``r`` is ``G_{t+r} Phi_{t+r,t}`` with ``G`` the Jacobian of ``g``;
 - ``Phi_{t,t} = I``, ``Phi_{m+1,t} = Phi_m Phi_{m,t}`` with the stored closed-loop
-  ``Phi_m = A_m + B_m K_m``. Starts ``t = 0 .. T - T_h + 1``.
+  ``Phi_m = A_m + B_m K_m``.
+
+Starts ``t = 0 .. T - 1``: every time a rollout can replan (it replans at ``0, T_a, 2 T_a, .. < T``),
+so the end of an episode (braking, holding at the goal) is a training condition. Rows past the
+episode are *held*, as diffusion_policy's ``SequenceSampler`` pads episode ends: the final state
+(state actions: ``g(x_T)``) or the last control (torque: ``u_{T-1}``), with the Jacobian row of what is
+held (``G_T Phi_{T,t}``, resp. ``K_{T-1} Phi_{T-1,t}``). A rollout never plays a held row (it stops at T);
+they only give the network a consistent target. (Before results version 2 the starts stopped at
+``T - T_h + 1``: a perfect memorizer of the chunks then scored 1500x TO's cost on UR5.)
 
 The observation ``o_t = (obs(x_t), u_{t-1})`` depends on ``x_t`` through the task's
 observation map (Jacobian ``obs_jac``); ``u_{t-1}`` is treated as given (zero derivative).
 
 Everything is precomputed once as float64 numpy arrays (``N * S * T_h * A * ndx`` floats
-for the chunk Jacobians, ``S = T - T_h + 2``), then turned into normalized float32
+for the chunk Jacobians, ``S = T`` starts), then turned into normalized float32
 tensors (:meth:`ChunkDataset.tensors`) from which training draws batches by index.
 """
 
@@ -149,10 +157,10 @@ class ChunkDataset(Dataset):
         X, U = arrays["X"], arrays["U"]
         N, T = U.shape[:2]
         self.n_traj, self.T = N, T
-        S = T - T_h + 2
+        S = T
         self.n_starts = S
         starts = np.arange(S)
-        rows = starts[:, None] + np.arange(T_h)[None]           # (S, T_h) indices into a_seq
+        rows = np.minimum(starts[:, None] + np.arange(T_h)[None], T)   # (S, T_h) indices into a_seq, held at T
         a_seq = action_sequence(task, X, U, self.action)          # (N, T+1, A)
         self.tau0 = a_seq[:, rows]                                 # (N, S, T_h, A)
         obs_x = task.observation(X)                                # (N, T+1, n_obs)
@@ -168,26 +176,31 @@ class ChunkDataset(Dataset):
 
     @staticmethod
     def chunk_jacobians(task: Task, arrays: dict, T_h: int, action: str) -> np.ndarray:
-        """``d tau_0 / d x_t`` for every start: (N, S, T_h, A, ndx), by chaining K and Phi."""
+        """``d tau_0 / d x_t`` for every start: (N, S, T_h, A, ndx), by chaining K and Phi; rows past
+        the episode hold the Jacobian of the held action (the chain stops at the last step)."""
         X, K, Phi = arrays["X"], arrays["K"], arrays["Phi"]
         N, T = K.shape[:2]
-        S = T - T_h + 2
+        S = T
         starts = np.arange(S)
         ndx = task.ndx
         G = None if action == "u" else task_with_action(task, action).state_action_jacobian(X)  # (N,T+1,A,ndx)
         A_dim = task.nu if action == "u" else G.shape[-2]
         J = np.zeros((N, S, T_h, A_dim, ndx))
         P = np.broadcast_to(np.eye(ndx), (N, S, ndx, ndx)).copy()       # Phi_{t+r,t}, r = 0
+
+        def advance(P, m, last):   # P <- Phi_m P where m <= last (the chain goes on), else held
+            return np.where((m <= last)[None, :, None, None], Phi[:, np.minimum(m, T - 1)] @ P, P)
+
         for r in range(T_h):
             if action == "u":
-                if r >= 1:   # row r = u_{t+r-1}: K_{t+r-1} Phi_{t+r-1,t}; P holds Phi_{t+r-1,t}
-                    J[:, :, r] = K[:, starts + r - 1] @ P
+                if r >= 1:   # row r = u_{min(t+r-1, T-1)}: K_m Phi_{m,t}; P holds Phi_{m,t}
+                    J[:, :, r] = K[:, np.minimum(starts + r - 1, T - 1)] @ P
                     if r < T_h - 1:
-                        P = Phi[:, starts + r - 1] @ P
-            else:
-                J[:, :, r] = G[:, starts + r] @ P
+                        P = advance(P, starts + r - 1, T - 2)   # the last row held is u_{T-1}
+            else:            # row r = g(x_{min(t+r, T)}): G Phi_{min(t+r,T),t}
+                J[:, :, r] = G[:, np.minimum(starts + r, T)] @ P
                 if r < T_h - 1:
-                    P = Phi[:, starts + r] @ P
+                    P = advance(P, starts + r, T - 1)       # the last row held is g(x_T)
         return J
 
     # Dataset protocol ------------------------------------------------------

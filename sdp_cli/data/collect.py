@@ -51,6 +51,9 @@ class CollectConfig:
     k_rollout: int | None = None
 
     def __post_init__(self):
+        from sdp_cli.seeds import check_seed
+
+        check_seed(self.seed)
         if self.n_traj <= 0:
             raise SdpError(f"n_traj must be > 0, got {self.n_traj}")
         if self.max_iter <= 0:

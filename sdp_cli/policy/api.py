@@ -26,7 +26,8 @@ class Policy:
         self.config = TrainConfig.from_dict(ck["config"])
         self.method = self.config.method
         self.action = ck["action"]
-        self.task: Task = get_task(ck["task"], **(ck.get("task_options") or {}))
+        self.task_options: dict = dict(ck.get("task_options") or {})   # recorded by rollouts, checked by refine
+        self.task: Task = get_task(ck["task"], **self.task_options)
         check_task_params(self.task, ck.get("task_params"), "policy checkpoint")
         if self.config.is_diffusion:   # the policy's action variable may differ from the task's default
             self.task = task_with_action(self.task, self.action)

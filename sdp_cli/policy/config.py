@@ -57,6 +57,9 @@ class TrainConfig:
         from sdp_cli.policy.registry import get_method
 
         get_method(self.method)   # a registered method (sdp_cli.policy.registry), else one clear error
+        from sdp_cli.seeds import check_seed
+
+        check_seed(self.seed)
         if self.sobolev_mode not in SOBOLEV_MODES:
             raise SdpError(f"sobolev mode must be one of {', '.join(SOBOLEV_MODES)}; got {self.sobolev_mode!r}")
         for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
@@ -76,8 +79,8 @@ class TrainConfig:
             raise SdpError(f"betas must be two numbers in [0, 1), got {list(self.betas)}")
         if self.warmup_steps is not None and self.warmup_steps < 0:
             raise SdpError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
-        if any(e <= 0 for e in self.save_at):
-            raise SdpError(f"save_at epochs must be > 0, got {list(self.save_at)}")
+        if any(not 0 < int(e) < self.epochs for e in self.save_at):
+            raise SdpError(f"save_at epochs must be in (0, epochs = {self.epochs}), got {list(self.save_at)}")
         if not 0 < self.sobolev_fraction <= 1:
             raise SdpError(f"sobolev_fraction must be in (0, 1], got {self.sobolev_fraction}")
         if self.sobolev_fraction < 1 and self.sobolev_mode != "jvp":
