@@ -349,6 +349,41 @@ def pipeline_cmd(
                + "; run `dvc repro`")
 
 
+@app.command("check-task")
+@clean_errors
+def check_task_cmd(
+    task: Annotated[str, typer.Argument(help=task_help())],
+    n_traj: Annotated[int, typer.Option("--n-traj", help="TO optima (from the naive guess) for the oracle replay, the memorizer and the timing.")] = 2,
+    cases: Annotated[Optional[str], typer.Option(help="(T_h, T_a) pairs for the memorizer, e.g. 32:31,64:63 (default: those pipelines/*.yaml use for this task, and 32:31).")] = None,
+    solve: Annotated[bool, typer.Option("--solve/--no-solve", help="Also run the checks that need TO optima (oracle replay, memorizer, timing).")] = True,
+) -> None:
+    """Check a task's contract before training on it: dynamics, derivatives vs finite differences, oracle
+    replay, the memorizer (a perfect learner must score TO's cost) and the timing of its optimum."""
+    from sdp_cli.tasks import get_task
+    from sdp_cli.tasks.contract import model_rows, optimum_rows, pipeline_cases
+
+    t = get_task(task)
+    if n_traj <= 0:
+        raise SdpError(f"--n-traj must be > 0, got {n_traj}")
+    pairs = pipeline_cases(task)
+    if cases:
+        try:
+            pairs = [tuple(int(v) for v in c.split(":")) for c in cases.split(",")]
+            assert all(len(p) == 2 for p in pairs)
+        except (ValueError, AssertionError):
+            raise SdpError(f"--cases must be T_h:T_a pairs separated by commas, e.g. 32:31,64:63; got {cases!r}") from None
+    rows = model_rows(t)
+    if solve:
+        rows += optimum_rows(t, pairs, n_traj)[0]
+    width = max(len(r["check"]) for r in rows)
+    for r in rows:
+        typer.echo(f"{'pass' if r['ok'] else 'FAIL'}  {r['check']:<{width}}  {r['value']:.3g} (limit {r['limit']:.3g})")
+    failed = [r["check"] for r in rows if not r["ok"]]
+    if failed:
+        raise SdpError(f"task {task!r} fails {len(failed)} of {len(rows)} checks: {'; '.join(failed)}")
+    typer.echo(f"task {task!r} passes all {len(rows)} checks")
+
+
 @app.command("report")
 @clean_errors
 def report_cmd(
