@@ -20,6 +20,15 @@ from pathlib import Path
 import numpy as np
 
 
+def outcome_line(d: dict, n: int) -> str:
+    """How often the policy guess won: a tie (both solves at the same cost, which ArgminCost keeps from the
+    policy) is not a win (:func:`sdp_cli.argmin.policy_outcomes`)."""
+    from sdp_cli.argmin import policy_outcomes
+
+    wins, ties = policy_outcomes(d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
+    return f"policy guess won {wins}/{n} (cheaper than TO alone, or TO alone failed), tied {ties}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--policy", type=Path)
@@ -64,7 +73,7 @@ def main() -> None:
         print(f"{name:16s}{t.mean():12.4f}{np.median(t):13.4f}{it.mean():12.1f}{c.mean():11.0%}"
               f"{np.nanmean(np.where(c, cost, np.nan)):11.3g}")
     print(f"speed-up naive / policy: mean time {bt.mean() / pt.mean():.2f}x, iterations {bi.mean() / pi.mean():.2f}x; "
-          f"policy guess won {int((d['inst_winner'] == 0).sum())}/{args.n}")
+          + outcome_line(d, args.n))
     print(f"casadi problems built during refine (in this process): {rebuilt}")
 
 

@@ -335,6 +335,9 @@ class TrajOptSolver:
 
 
 _CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+#: solvers kept per task (least recently used dropped first): `bench/trajopt.py`'s gain check builds one
+#: per checked step's horizon, and an unbounded cache grew to 17.5 GB
+SOLVER_CACHE_SIZE = 8
 
 
 def compile_tag(task, T: int, solver: str) -> str:
@@ -370,6 +373,10 @@ def get_solver(task, horizon: int | None = None, *, solver: str = DEFAULT_SOLVER
     jit = jit_enabled_by_default() if jit is None else bool(jit)
     key = (T, solver, int(max_iter), float(tol), float(viol_tol), jit)
     per_task = _CACHE.setdefault(task, {})
-    if key not in per_task:
+    if key in per_task:
+        per_task[key] = per_task.pop(key)          # most recently used last
+    else:
+        while len(per_task) >= SOLVER_CACHE_SIZE:  # bounded: the gain check builds one per re-solved horizon
+            per_task.pop(next(iter(per_task)))
         per_task[key] = TrajOptSolver(task, T, solver, int(max_iter), float(tol), float(viol_tol), jit)
     return per_task[key]

@@ -1,0 +1,41 @@
+"""What the bench scripts print and keep: ties are not wins (bench/refine.py), the solver cache is bounded
+(bench/trajopt.py's gain check grew it to 17.5 GB at 38d2c04)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench(name):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_refine_bench_does_not_count_ties_as_wins():
+    # instance 0: policy kept, TO alone equal (tie); 1: policy kept and cheaper (win); 2: TO alone kept;
+    # 3: policy kept, TO alone failed (win)
+    d = {"inst_winner": np.array([0, 0, 1, 0]), "inst_pol_cost": np.array([1.0, 1.0, 3.0, 2.0]),
+         "inst_base_cost": np.array([1.0, 1.5, 2.0, np.inf]),
+         "inst_base_converged": np.array([True, True, True, False])}
+    assert "won 2/4" in _bench("refine").outcome_line(d, 4) and "tied 1" in _bench("refine").outcome_line(d, 4)
+
+
+def test_solver_cache_is_bounded():
+    from sdp_cli.tasks import get_task
+    from sdp_cli.trajopt import solver as S
+
+    task = get_task("pendulum", T=12)
+    first = S.get_solver(task, horizon=2, jit=False)
+    for h in range(3, 3 + S.SOLVER_CACHE_SIZE + 4):      # one per re-solved horizon, as the gain check does
+        S.get_solver(task, horizon=h, jit=False)
+    assert len(S._CACHE[task]) == S.SOLVER_CACHE_SIZE
+    assert S.get_solver(task, horizon=3 + S.SOLVER_CACHE_SIZE + 3, jit=False) is S.get_solver(
+        task, horizon=3 + S.SOLVER_CACHE_SIZE + 3, jit=False)         # still a cache
+    assert S.get_solver(task, horizon=2, jit=False) is not first       # the oldest was dropped
