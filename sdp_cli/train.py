@@ -249,7 +249,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     flushed = [len(rows) if prev is not None else 0]
     net.train()
     bar = _progress(progress)
-    try:
+    from sdp_cli.interrupts import deferred
+
+    with deferred() as interrupt:
         with bar:
             task_id = bar.add_task(cfg.method, total=total, completed=step, info="")
             order, order_epoch = None, -1
@@ -286,9 +288,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                     last_ck = time.perf_counter()
                 if on_step is not None:
                     on_step(step)
-    except KeyboardInterrupt:
-        checkpoint(ck_path)
-        raise
+                interrupt.check(lambda: checkpoint(ck_path))   # Ctrl-C / SIGTERM: stop at this step boundary
     checkpoint(ck_path)
     log(f"done: {step} steps, final loss {rows[-1]['loss'] if rows else 'n/a'}, "
         f"{time.perf_counter() - t0:.1f} s; checkpoint {ck_path}")

@@ -27,9 +27,30 @@ FORMAT_VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
+def canonical(obj):
+    """``obj`` with every tensor a fresh contiguous copy, every container rebuilt and every string interned:
+    pickle memoizes objects by identity, so equal state must be equal object graphs to give equal bytes (a
+    resumed optimizer's ``"step"`` keys were strings of their own where a fresh one's were the same object
+    as the checkpoint's ``"step"`` key, and the checkpoints of equal runs differed)."""
+    import sys
+
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().clone().contiguous()
+    if isinstance(obj, str):
+        return sys.intern(obj)
+    if isinstance(obj, dict):
+        return {canonical(k): canonical(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(canonical(v) for v in obj)
+    if isinstance(obj, int) and not isinstance(obj, bool):
+        return int(obj)
+    return obj
+
+
 def save_checkpoint(path: str | Path, payload: dict) -> Path:
-    """Atomically write ``payload`` (adds format, version, provenance)."""
-    payload = {"format": FORMAT, "format_version": FORMAT_VERSION, "provenance": runtime_provenance(), **payload}
+    """Atomically write ``payload`` (adds format, version, provenance), canonically (:func:`canonical`)."""
+    payload = canonical({"format": FORMAT, "format_version": FORMAT_VERSION, "provenance": runtime_provenance(),
+                         **payload})
     buf = io.BytesIO()
     torch.save(payload, buf)
     return atomic_write_bytes(path, lambda f: f.write(buf.getvalue()))
