@@ -5,6 +5,7 @@ Every :class:`~sdp_cli.errors.SdpError` becomes one line on stderr and exit code
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -334,6 +335,11 @@ def pipeline_cmd(
         return
     if run:
         from sdp_cli.runner import run_group
+
+        if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
+            from sdp_cli.workers import die_with_parent
+
+            die_with_parent(os.getppid())
 
         names = [s for s in (only or "").split(",") if s] or None
         summary = run_group(experiment, out or Path("runs") / experiment, executor=executor, workers=workers,

@@ -22,7 +22,9 @@ running the runs one after another (same seeds, one thread each; tested).
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
@@ -44,10 +46,15 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     from sdp_cli.train import resolve_device
 
     torch.set_num_threads(1)
+    name = Path(out).name
+
+    def log(line: str) -> None:   # one line per stage of each run (what `dvc repro` shows while it trains)
+        print(f"{name}: {line.strip()}", file=sys.stderr, flush=True)
+
     cfg = LoopConfig(**{**config, "n_traj": tuple(config["n_traj"]), "eval_t_a": tuple(config["eval_t_a"]),
                         "eval_t_a_last": tuple(config["eval_t_a_last"]), "save_at": tuple(config["save_at"]),
                         "device": str(resolve_device(device))})
-    return run_loop(cfg, out, log=lambda s: None).to_dict("records")
+    return run_loop(cfg, out, log=log).to_dict("records")
 
 
 def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:
@@ -73,15 +80,58 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     (:data:`sdp_cli.RESULTS_VERSION`) is moved aside (:func:`supersede`, never deleted) and the run
     starts over; otherwise other settings are refused before anything runs and another results version
     is resumed. ``job``: the per-run function (tests substitute one that kills its worker once)."""
-    from sdp_cli.executor import check_executor_options, error_status, make_executor
-    from sdp_cli.loop import check_resume
+    from sdp_cli.executor import check_executor_options
     from sdp_cli.experiment import load_experiment
     from sdp_cli.pipeline import loop_configs
-    from sdp_cli.progress import count_progress
 
     executor, workers, scheduler = executor_options(executor, workers, scheduler)
     check_executor_options(executor, workers, scheduler)
     runs = loop_configs(name, load_experiment(name, root))
+    with runner_lock(Path(out)):
+        return _run_group(name, runs, Path(out), executor, workers, scheduler, device, only, restart_changed, log, job)
+
+
+def lock_path(out: Path) -> Path:
+    """The lock of the runs in ``out``: beside the folder (``runs/.small.lock``), outside the DVC output."""
+    out = Path(out).resolve()
+    return out.parent / f".{out.name}.lock"
+
+
+@contextlib.contextmanager
+def runner_lock(out: Path):
+    """One runner per run folder: a second ``sdp pipeline --run`` (or ``dvc repro``) on the same folder
+    refuses with one line naming the owner's pid instead of training the same runs twice at once. An
+    ``flock``: released by the kernel when its holders die (no stale lock after a ``kill -9``); the pool
+    workers inherit it, so it is held while any of them still writes."""
+    import fcntl
+
+    path = lock_path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    f = open(path, "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        owner = f.read().strip() or "unknown"
+        f.close()
+        raise SdpError(f"{out} is being run by another `sdp pipeline --run` (pid {owner}); wait for it to finish "
+                       f"or stop it (its lock: {path})") from None
+    try:
+        f.seek(0)
+        f.truncate()
+        f.write(str(os.getpid()))
+        f.flush()
+        yield
+    finally:
+        fcntl.flock(f, fcntl.LOCK_UN)
+        f.close()
+
+
+def _run_group(name, runs, out, executor, workers, scheduler, device, only, restart_changed, log, job):
+    from sdp_cli.executor import error_status, make_executor
+    from sdp_cli.loop import check_resume
+    from sdp_cli.progress import count_progress
+
     if only:
         unknown = sorted(set(only) - set(runs))
         if unknown:
