@@ -394,7 +394,7 @@ def check_task_cmd(
 @clean_errors
 def report_cmd(
     runs: Annotated[Optional[Path], typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")] = None,
-    out: Annotated[Path, typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG).")] = Path("results"),
+    out: Annotated[Optional[Path], typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG), e.g. results/fig2 (required with --runs).")] = None,
     experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the last iteration's mean costs and success per task and method as JSON (DVC metrics).")] = None,
     ledger: Annotated[Optional[Path], typer.Option(help="Then (re)write the claims ledger, e.g. results/PAPER.md, from the reports in its folder (*/all_runs.csv, bench/*.csv) and its claims.yaml.")] = None,
@@ -406,6 +406,8 @@ def report_cmd(
     if runs is not None:
         from sdp_cli.report.make import make_report
 
+        if out is None:   # no default: results/ holds every committed report and the index
+            raise SdpError("--runs needs --out, the report's folder, e.g. --out results/" + Path(runs).name)
         files = make_report(runs, out, experiment, log=lambda s: typer.echo(s, err=True), metrics=metrics,
                             keep_missing=keep_missing)
         typer.echo(f"wrote {len(files)} files to {out}")
@@ -415,8 +417,26 @@ def report_cmd(
         typer.echo(f"wrote {write_ledger(ledger)}")
 
 
-def main() -> None:  # pragma: no cover - entry point
-    app()
+def main(argv: list[str] | None = None) -> int:
+    """The ``sdp`` entry point: a usage error (unknown option, bad value, missing argument) is one line on
+    stderr and exit code 2 (click's code for usage errors; errors of the work itself exit with 1)."""
+    try:
+        from typer._click import exceptions as click_exc   # typer vendors its click
+    except ImportError:  # pragma: no cover - typer releases that use click itself
+        from click import exceptions as click_exc
+
+    try:
+        rv = app(args=argv, standalone_mode=False, prog_name="sdp")
+    except getattr(click_exc, "NoArgsIsHelpError", ()):   # `sdp` alone: the help was printed
+        return 0
+    except click_exc.UsageError as e:
+        cmd = e.ctx.command_path if e.ctx is not None else "sdp"
+        typer.echo(f"Error: {e.format_message()} (see `{cmd} --help`)", err=True)
+        return 2
+    except getattr(click_exc, "Abort", ()):
+        typer.echo("Interrupted.", err=True)
+        return 130
+    return rv if isinstance(rv, int) else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

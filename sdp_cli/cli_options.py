@@ -11,6 +11,25 @@ import typer
 from sdp_cli.errors import SdpError
 
 
+def _flags_without_type() -> None:
+    """typer 0.29 with click 8.5 shows ``<bool>`` after every flag in ``--help`` (``--resume <bool>``,
+    ``--progress/--no-progress <bool>``): a flag takes no value, so it shows no type."""
+    from typer.core import TyperOption
+
+    if getattr(TyperOption.display_type_rich, "_sdp", False):
+        return
+    original = TyperOption.display_type_rich
+
+    def display_type_rich(self, ctx):
+        return None if getattr(self, "is_flag", False) else original(self, ctx)
+
+    display_type_rich._sdp = True
+    TyperOption.display_type_rich = display_type_rich
+
+
+_flags_without_type()
+
+
 def clean_errors(fn: Callable) -> Callable:
     """Turn SdpError (and Ctrl-C) into a one-line message and exit code 1."""
 

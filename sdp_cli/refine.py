@@ -57,6 +57,9 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         raise SdpError(f"max_iter must be > 0, got {max_iter}")
     if not meta.get("task"):
         raise SdpError(f"corrupt rollout artifact {rollouts}: no task name in its metadata")
+    from sdp_cli.data.artifacts import check_writable
+
+    check_writable(out)                    # before the solves, not after them
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
     check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")

@@ -163,6 +163,9 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
     if task_name is not None and task_name != policy.task_name:
         raise SdpError(f"policy {policy_path} was trained on task {policy.task_name!r}, not {task_name!r}")
     config = config.validate(policy)
+    from sdp_cli.data.artifacts import check_writable
+
+    check_writable(out)                    # before the work, not after it
     task = policy.task
     xis = evaluation_xis(task, config.n, config.seed)
     t0 = time.perf_counter()

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import os
@@ -200,6 +201,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 
     scheduler = cfg.family.scheduler(cfg)
     loss_fn = make_loss(cfg, scheduler, sob_scale)
+    created = not out.exists()
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
             "task": meta["task"], "task_options": task_options_of(meta), "task_params": meta.get("task_params"),
@@ -251,7 +253,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     bar = _progress(progress)
     from sdp_cli.interrupts import deferred
 
-    with deferred() as interrupt:
+    with deferred() as interrupt, _discard_if_failed_at_start(out, created, ck_path):
         with bar:
             task_id = bar.add_task(cfg.method, total=total, completed=step, info="")
             order, order_epoch = None, -1
@@ -293,6 +295,20 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     log(f"done: {step} steps, final loss {rows[-1]['loss'] if rows else 'n/a'}, "
         f"{time.perf_counter() - t0:.1f} s; checkpoint {ck_path}")
     return ck_path
+
+
+@contextlib.contextmanager
+def _discard_if_failed_at_start(out: Path, created: bool, ck_path: Path):
+    """A fresh run that fails before its first checkpoint (``--lr 1e30`` diverges at once) leaves no folder
+    behind: only what this call created, and only while it holds no checkpoint."""
+    try:
+        yield
+    except SdpError:
+        if created and not ck_path.exists():
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
+        raise
 
 
 def _progress(enabled: bool):

@@ -263,3 +263,40 @@ def test_task_options_survive_policy_rollout_and_refine(tmp_path):
     assert r.exit_code == 0, r.output
     arrays, meta = load_npz(tmp_path / "f.npz", kind="dataset")
     assert meta["task_options"] == {"T": 24} and arrays["U"].shape[1] == 24
+
+
+@pytest.mark.parametrize("argv,msg", [(["loop", "--nope"], "No such option: --nope"),
+                                      (["loop", "--task", "pendulum", "--method", "dp", "--seed", "abc"], "'--seed'"),
+                                      (["train"], "Missing option '--data'")])
+def test_usage_errors_are_one_line_with_exit_code_2(capsys, argv, msg):
+    """At 38d2c04 a usage error printed a 5-6 line box; the README says: one line, exit code 2 (click's)."""
+    from sdp_cli.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and msg in err and "--help" in err, err
+
+
+@pytest.mark.parametrize("cmd", ["train", "loop", "refine", "pipeline", "report"])
+def test_help_shows_no_type_after_flags(cmd):
+    """`--resume <bool>`, `--progress/--no-progress <bool>` at 38d2c04."""
+    r = runner.invoke(app, [cmd, "--help"])
+    assert r.exit_code == 0 and "<bool>" not in r.output
+
+
+def test_outputs_are_checked_before_the_work(run, tmp_path):
+    """At 38d2c04 `rollout` and `refine` found an unwritable --out only after all their work (32 s, 67 s);
+    `train --lr 1e30` left an empty run folder; `sdp report` without --out wrote into results/."""
+    import time as _time
+
+    t0 = _time.perf_counter()
+    _fails_cleanly(runner.invoke(app, ["rollout", "--policy", str(run["pol"]), "--n", "50", "--out",
+                                       str(run["file"] / "r.npz")]), "cannot write")
+    _fails_cleanly(runner.invoke(app, ["refine", "--rollouts", str(run["ra"]), "--workers", "1", "--out",
+                                       str(run["file"] / "f.npz")]), "cannot write")
+    assert _time.perf_counter() - t0 < 5
+    r = runner.invoke(app, ["train", "--data", str(run["data"]), "--method", "dp", "--epochs", "20", "--horizon",
+                            "8", "--lr", "1e30", "--out", str(tmp_path / "diverged")])
+    assert r.exit_code == 1 and "Error: training diverged" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "diverged").exists()
+    _fails_cleanly(runner.invoke(app, ["report", "--runs", str(tmp_path)]), "--runs needs --out")
