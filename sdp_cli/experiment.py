@@ -29,8 +29,8 @@ def load_experiment(name: str, root: Path = Path(".")) -> dict:
         spec = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise SdpError(f"invalid experiment file {path}: {e}") from None
-    if not isinstance(spec, dict) or not isinstance(spec.get("groups"), list):
-        raise SdpError(f"invalid experiment file {path}: needs a 'groups' list")
+    if not isinstance(spec, dict) or not isinstance(spec.get("groups"), (dict, list)) or not spec["groups"]:
+        raise SdpError(f"invalid experiment file {path}: needs 'groups', a mapping of group names to groups")
     unknown = set(spec) - {"description", "groups"}
     if unknown:
         raise SdpError(f"invalid experiment file {path}: unknown keys {sorted(unknown)}")
@@ -69,7 +69,7 @@ def describe_type(spec: str) -> str:
 
 def group_where(name: str, gi: int) -> str:
     """How an error names a group: the file and the group's index."""
-    return f"{PIPELINES_DIR / (name + '.yaml')}, group {gi}"
+    return f"{PIPELINES_DIR / (name + '.yaml')}, group {gi}"   # a name, or a list index
 
 
 def check_group(name: str, gi: int, raw: dict) -> dict:
@@ -99,6 +99,13 @@ def check_group(name: str, gi: int, raw: dict) -> dict:
     return g
 
 
+def group_items(spec: dict) -> list[tuple[str, dict]]:
+    """``(name, group)`` of every group: ``groups`` is a mapping keyed by group name (what DVC's
+    ``dvc exp run -S 'pipelines/NAME.yaml:groups.GROUP.epochs=...'`` can address), or a list (named by index)."""
+    groups = spec["groups"]
+    return [(str(k), g) for k, g in (groups.items() if isinstance(groups, dict) else enumerate(groups))]
+
+
 def run_name(task: str, method: str, n_traj: int, seed: int, tag: str | None = None) -> str:
     """The folder of one run."""
     return f"{task}-{method}-n{n_traj}-s{seed}" + (f"-{tag}" if tag else "")
@@ -111,4 +118,4 @@ def group_run_names(g: dict) -> list[str]:
 
 def run_names(name: str, spec: dict) -> list[str]:
     """The run names of an experiment (cheap: no run is validated)."""
-    return [k for gi, raw in enumerate(spec["groups"]) for k in group_run_names(check_group(name, gi, raw))]
+    return [k for gi, raw in group_items(spec) for k in group_run_names(check_group(name, gi, raw))]

@@ -39,7 +39,7 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.experiment import check_group, group_where, load_experiment, run_name, type_ok
+from sdp_cli.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
 
 #: TrainConfig fields a group sets elsewhere (``train:`` may set the others)
 _GROUP_OWNED = {"method", "epochs", "seed", "T_h", "save_at"}
@@ -69,7 +69,7 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
     from sdp_cli.experiment import describe_type
 
     runs = {}
-    for gi, raw in enumerate(spec["groups"]):
+    for gi, raw in group_items(spec):
         g = check_group(name, gi, raw)
         where = group_where(name, gi)
         bad = set(g["train"] or {}) - train_option_names()
@@ -104,25 +104,22 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
         save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
 
 
-def expand(name: str, spec: dict) -> dict:
-    """The stage list ``dvc.yaml`` iterates: one ``group`` entry running every run of ``name``
-    (validated here, not hours into ``dvc repro``)."""
-    loop_configs(name, spec)
-    return {"group": {name: {"experiment": name, "dir": f"runs/{name}"}}}
-
-
 def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: Path = Path(".")) -> dict:
-    """Validate experiment ``name`` and select it in ``params.yaml``; returns ``{"runs": n}``."""
+    """Validate experiment ``name`` (every run, not hours into ``dvc repro``) and select it in ``params.yaml``;
+    returns ``{"runs": n}``. The experiment's settings are DVC parameters of ``pipelines/NAME.yaml`` itself
+    (``dvc.yaml``'s stage ``group``): ``dvc exp run -S 'pipelines/NAME.yaml:groups.GROUP.epochs=100'``,
+    ``dvc params diff``, ``dvc exp show``."""
     spec = load_experiment(name, root)
-    stages = expand(name, spec)
+    n = len(loop_configs(name, spec))
     params = {}
     if params_path.exists():
         params = yaml.safe_load(params_path.read_text()) or {}
+    params.pop("experiment_stages", None)     # written by sdp before results version 2
     params["experiment"] = name
-    params["experiment_stages"] = stages
-    header = ("# Selected experiment (its runs are defined in pipelines/NAME.yaml). Written by `sdp pipeline NAME`:\n"
-              "# edit the experiment file, then re-run `sdp pipeline NAME`.\n")
+    header = ("# The experiment `dvc repro` runs: pipelines/<experiment>.yaml, whose settings are DVC parameters\n"
+              "# (dvc exp run -S 'pipelines/small.yaml:groups.pendulum-sdp-dp.epochs=100'). Written by\n"
+              "# `sdp pipeline NAME`.\n")
     from sdp_cli.data.artifacts import atomic_write_bytes
 
     atomic_write_bytes(params_path, lambda f: f.write((header + yaml.safe_dump(params, sort_keys=False)).encode()))
-    return {"runs": len(loop_configs(name, spec))}
+    return {"runs": n}

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from sdp_cli.data.chunks import ChunkDataset
-from sdp_cli.experiment import GROUP_DEFAULTS
+from sdp_cli.experiment import GROUP_DEFAULTS, group_items
 from sdp_cli.tasks import get_task, task_names
 from sdp_cli.tasks.contract import MEMORIZER_RTOL, memorizer_costs, pipeline_cases, solve_instances
 
@@ -29,7 +29,7 @@ def replan_times(T: int, t_a: int) -> list[int]:
 def pipeline_triples():
     out = set()
     for path in sorted((ROOT / "pipelines").glob("*.yaml")):
-        for g in yaml.safe_load(path.read_text())["groups"]:
+        for _, g in group_items(yaml.safe_load(path.read_text())):
             g = {**GROUP_DEFAULTS, **g}
             h = g["horizon"]
             for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}:

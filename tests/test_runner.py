@@ -70,13 +70,12 @@ def _same_runs(a, b):
 
 def test_runs_of_an_experiment_are_loop_configs(root):
     from sdp_cli.experiment import load_experiment
-    from sdp_cli.pipeline import expand
 
     spec = load_experiment("tiny", root)
     cfgs = loop_configs("tiny", spec)
     assert list(cfgs) == RUNS
     assert cfgs[RUNS[1]].seed == 1 and cfgs[RUNS[1]].collect_seed(0) == 1000 and cfgs[RUNS[0]].save_at == (1,)
-    assert expand("tiny", spec) == {"group": {"tiny": {"experiment": "tiny", "dir": "runs/tiny"}}}
+    assert len(loop_configs("tiny", spec)) == 2
 
 
 def test_sequential_runs_evaluate_both_budgets(sequential):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sdp_cli.experiment import check_group, group_run_names, load_experiment
+from sdp_cli.experiment import check_group, group_items, group_run_names, load_experiment
 
 #: partway runs named per group before "and N more"
 MAX_NAMED = 6
@@ -30,7 +30,7 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
     reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
     epochs = df.groupby("run").epochs.max().to_dict() if len(df) and "epochs" in df else {}
     rows = []
-    for gi, raw in enumerate(spec["groups"]):
+    for gi, raw in group_items(spec):
         g = check_group(name, gi, raw)
         keys = group_run_names(g)
         n_algo = int(g["n_algo"])

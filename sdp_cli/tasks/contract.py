@@ -167,12 +167,12 @@ def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, in
     with (collection warm starts and every evaluated T_a), plus the defaults (T_h 32, T_a 31)."""
     import yaml
 
-    from sdp_cli.experiment import GROUP_DEFAULTS, PIPELINES_DIR
+    from sdp_cli.experiment import GROUP_DEFAULTS, PIPELINES_DIR, group_items
     from sdp_cli.policy.registry import get_method
 
     cases = {(32, 31)}
     for path in sorted((root / PIPELINES_DIR).glob("*.yaml")):
-        for g in (yaml.safe_load(path.read_text()) or {}).get("groups", []):
+        for _, g in group_items(yaml.safe_load(path.read_text()) or {"groups": []}):
             g = {**GROUP_DEFAULTS, **g}
             if g.get("task") != task_name or not any(get_method(m).family.chunked for m in g["methods"]):
                 continue
