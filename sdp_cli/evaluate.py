@@ -224,16 +224,19 @@ def manifest_path(csv: str | os.PathLike) -> Path:
     return p.with_name(p.stem + MANIFEST_SUFFIX)
 
 
-def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None) -> Path:
-    """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar, and the
-    manifest of ``artifacts`` (one :func:`evaluation_artifacts` per row) next to it."""
+def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None,
+                     wall_time: float | None = None) -> Path:
+    """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar (with ``wall_time``, the
+    measured seconds of the whole evaluation, when given), and the manifest of ``artifacts`` (one
+    :func:`evaluation_artifacts` per row) next to it."""
     from sdp_cli.data.artifacts import code_revision
 
     df = pd.DataFrame(rows)
     timed = [c for c in df.columns if is_timing_column(c)]
     out = Path(out)
     path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))
-    save_timing(out, {"rows": df[timed].astype(float).to_dict("records")})
+    save_timing(out, {"rows": df[timed].astype(float).to_dict("records"),
+                      **({"wall_time": float(wall_time)} if wall_time is not None else {})})
     if artifacts is not None:
         if len(artifacts) != len(rows):
             raise SdpError(f"{len(rows)} evaluation rows but {len(artifacts)} artifact records")

@@ -187,6 +187,9 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     from sdp_cli.refine import refine
     from sdp_cli.rollout import RolloutConfig, rollout
 
+    import time
+
+    t0 = time.perf_counter()
     rows, artifacts = [], []
     t_as = list(cfg.eval_t_a or (cfg.t_a,))
     if last:
@@ -209,7 +212,9 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
         rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
         artifacts.append(evaluation_artifacts(ro, rf if cfg.eval_refine else None))
     df = pd.DataFrame(rows)
-    write_evaluation(rows, eval_dir / "eval.csv", artifacts)
+    # the measured wall time of this evaluation (rollouts, refinement with every baseline, evaluation), not a
+    # sum of parts; an evaluation resumed after a kill counts its last attempt
+    write_evaluation(rows, eval_dir / "eval.csv", artifacts, wall_time=time.perf_counter() - t0)
     return df
 
 

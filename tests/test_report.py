@@ -377,3 +377,31 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
         assert marks[0].xy[1] < ax.get_ylim()[1]
         zeros = [t.xy[0] for t in ax.texts if t.get_text() == "≤0"]
         assert zeros == ([pytest.approx(4, rel=0.1)] if spread > 1e3 else [])     # DP's n_traj 4
+
+
+def test_timing_table_counts_single_shooting_and_the_measured_wall(tmp_path):
+    """At 38d2c04 the timing table left out the single-shooting baseline (about 19 s a fig2 evaluation) and gave
+    total_s as a sum of parts (105 s reported, 126 s measured)."""
+    import pandas as pd
+
+    from sdp_cli.data.artifacts import save_timing
+    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.report.timing import timing_table
+
+    pol = tmp_path / "run" / "it0" / "policy"
+    pol.mkdir(parents=True)
+    (pol / "metrics.csv").write_text("step,loss\n1,1.0\n10,0.5\n")
+    save_timing(pol, {"wall_time": 30.0})
+    ev = tmp_path / "run" / "it0" / "eval"
+    row = {"task": "pendulum", "method": "sdp", "train_seed": 0, "iteration": 0, "policy": str(pol), "n": 10,
+           "refined_solve_time_mean": 0.5, "refined_solved_rate": 1.0, "to_alone_solve_time_mean": 0.5,
+           "ss_refined_solve_time_mean": 1.0, "ss_to_alone_solve_time_mean": 1.0, "data": None, "run": "run",
+           "t_a": 8, "rollout_time": 2.0}
+    write_evaluation([row], ev / "eval.csv", wall_time=70.0)
+    df = pd.DataFrame([{**row, "source": str(ev)}])
+    t = timing_table(df, "pendulum").iloc[0]
+    assert t.eval_solve_s == 10.0 and t.eval_ss_solve_s == 20.0 and t.eval_wall_s == 70.0
+    assert t.total_s == 30.0 + 70.0 and not t.total_measured      # collection time unknown here
+    save_timing(ev / "eval.csv", {})                                 # an evaluation made before the wall was kept
+    t = timing_table(df, "pendulum").iloc[0]
+    assert pd.isna(t.eval_wall_s) and t.total_s == 30.0 + 2.0 + 10.0 + 20.0

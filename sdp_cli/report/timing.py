@@ -10,8 +10,12 @@ Columns (seconds of wall time, from the timing sidecars of the files the evaluat
   across resumes), ``train_s_per_step``;
 - ``eval_rollout_s`` and ``eval_solve_s``: rollouts of the test set and the TO solves of its
   refinement (policy guess + TO alone), summed over the T_a values and checkpoints evaluated at
-  that iteration (``eval_t_a_values``, e.g. "1,4,8");
-- ``total_s``: the sum.
+  that iteration (``eval_t_a_values``, e.g. "1,4,8"); ``eval_ss_solve_s``: the single-shooting
+  baseline's solves (from the policy's and the naive controls) where the loop ran it (fig2: about
+  19 s an evaluation); ``eval_wall_s``: the evaluation's measured wall time (rollouts, every solve,
+  compilation, writing; recorded by ``sdp loop`` since results version 2, NaN before);
+- ``total_s``: collection wall + training + the evaluation's measured wall time (where it was not
+  measured, the sum of its parts, flagged by ``total_measured`` False).
 """
 
 from __future__ import annotations
@@ -53,6 +57,14 @@ def _train(run_dir: Path) -> tuple[float, float]:
     return steps, float(load_timing(run_dir).get("wall_time", np.nan))
 
 
+def _eval_wall(g: pd.DataFrame) -> float:
+    """The measured wall seconds of the evaluations these rows come from (their ``eval.csv`` sidecars)."""
+    if "source" not in g:
+        return float("nan")
+    walls = [load_timing(Path(str(s)) / "eval.csv").get("wall_time", np.nan) for s in g["source"].dropna().unique()]
+    return float(np.sum(walls)) if walls and np.all(np.isfinite(walls)) else float("nan")
+
+
 def _col(g: pd.DataFrame, name: str, default: float) -> pd.Series:
     return g[name].astype(float).fillna(default) if name in g else pd.Series(default, index=g.index)
 
@@ -69,15 +81,21 @@ def timing_table(df: pd.DataFrame, task: str) -> pd.DataFrame:
         # mean over the instances solved from a guess x their number (older rows: mean over all, rate 1)
         solve = (_col(g, "refined_solve_time_mean", 0.0) * n * _col(g, "refined_solved_rate", 1.0)
                  + _col(g, "to_alone_solve_time_mean", 0.0) * n)
+        ss = sum(_col(g, f"{name}_solve_time_mean", 0.0) * n for name in ("ss_refined", "ss_to_alone"))
         c_solve, c_wall = _collect_seconds(g["data"].iloc[0])
         row = {"method": method, "run": g.run.iloc[0], "train_seed": int(seed), "iteration": int(it),
                "collect_solve_s": c_solve, "collect_wall_s": c_wall, "train_steps": steps, "train_s": train_s,
                "train_s_per_step": train_s / steps if steps else np.nan,
                "eval_t_a_values": ",".join(str(int(t)) for t in sorted(g.t_a.dropna().unique())),
                "eval_rollout_s": float(g.rollout_time.sum()),
-               "eval_solve_s": float(np.sum(solve))}
+               "eval_solve_s": float(np.sum(solve)), "eval_ss_solve_s": float(np.sum(ss)),
+               "eval_wall_s": _eval_wall(g)}
         collect = c_wall if np.isfinite(c_wall) else c_solve
-        row["total_s"] = float(np.nansum([collect, train_s, row["eval_rollout_s"], row["eval_solve_s"]]))
+        measured = np.isfinite(row["eval_wall_s"])
+        evaluation = row["eval_wall_s"] if measured else np.nansum([row["eval_rollout_s"], row["eval_solve_s"],
+                                                                    row["eval_ss_solve_s"]])
+        row["total_s"] = float(np.nansum([collect, train_s, evaluation]))
+        row["total_measured"] = bool(measured and np.isfinite(c_wall) and np.isfinite(train_s))
         rows.append(row)
     return pd.DataFrame(rows).sort_values(["method", "train_seed", "iteration"]) if rows else pd.DataFrame()
 
