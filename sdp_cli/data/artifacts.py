@@ -92,16 +92,22 @@ def revision_of(root: Path) -> str:
 
 @functools.cache
 def provenance() -> dict[str, Any]:
-    """Package versions, git revision of the code (:func:`code_revision`) and platform, recorded
-    inside every artifact."""
+    """Package versions, git revision of the code (:func:`code_revision`) and Python version, recorded
+    inside every artifact. What differs between machines running the same code (the CPU model, the kernel:
+    :func:`machine`) goes to the timing sidecar instead, so that the same run on another machine writes the
+    same bytes (DVC's hashes, and the committed dvc.lock, then agree)."""
     versions = {}
     for pkg in _PACKAGES:
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
-    return {"versions": versions, "git_rev": code_revision(), "python": platform.python_version(),
-            "platform": platform.platform(), "cpu_model": _cpu_model()}
+    return {"versions": versions, "git_rev": code_revision(), "python": platform.python_version()}
+
+
+def machine() -> dict[str, str]:
+    """The machine that wrote an artifact: platform (kernel) and CPU model, kept in its timing sidecar."""
+    return {"platform": platform.platform(), "cpu_model": _cpu_model()}
 
 
 def _cpu_model() -> str:
@@ -226,8 +232,7 @@ def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     payload["__meta__"] = np.array(json.dumps(meta, default=json_default))
     out = atomic_write_bytes(path, lambda f: _write_npz(f, payload))
-    if timing is not None:
-        save_timing(path, timing)
+    save_timing(path, timing or {})     # clock readings and the machine (outside the hashed bytes)
     return out
 
 
@@ -255,7 +260,8 @@ def timing_path(path: str | os.PathLike) -> Path:
 
 def save_timing(path: str | os.PathLike, timing: dict[str, Any]) -> Path:
     """Write the timing sidecar of ``path`` (adds ``created``, the UTC time of writing)."""
-    rec = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), **timing}
+    rec = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
+           **timing}
     data = json.dumps(rec, default=json_default, indent=1).encode()
     return atomic_write_bytes(timing_path(path), lambda f: f.write(data))
 
