@@ -11,8 +11,9 @@ state constraints; the quadrotor's column constraints are not expressible in Box
   Euler, our ``Task.f_step``; checked: both roll the same controls out to the same states);
 - costs: ``1/2 sum_i w_i ||r_i||^2`` residuals, running costs multiplied by dt by the Euler model;
   pendulums: frame translation (10) and control (0.1), terminal frame translation (10);
-  UR5: state (q 1e-4, v 1e-2) and control (1e-4), terminal frame translation (100), frame velocity in
-  LOCAL_WORLD_ALIGNED (100) and state (1e-4);
+  UR5 (results version 2): state (q 1e-4, v 0.3), control around gravity compensation (1e-4,
+  ``ResidualModelControlGrav``) and frame translation (300), terminal frame translation (100), frame
+  velocity in LOCAL_WORLD_ALIGNED (100) and state (1e-4);
 - control bounds: the task's ``u_lb``/``u_ub`` (BoxFDDP; BoxDDP is also timed).
 
 Each instance (collection seed 0, index i) is solved from the task's naive guess by our fatrop
@@ -57,11 +58,12 @@ def croc_problem(task, xi):
         run.addCost("u", quad(crocoddyl.ResidualModelControl(state, nu)), W_U)
         term.addCost("goal", quad(crocoddyl.ResidualModelFrameTranslation(state, task.tip, task.goal, nu)), W_GOAL_T)
     elif task.name.startswith("ur5"):
-        from sdp_cli.tasks.ur5 import W_EE_T, W_Q, W_TWIST_T, W_U, W_V, W_X_T
+        from sdp_cli.tasks.ur5 import W_EE, W_EE_T, W_Q, W_TWIST_T, W_U, W_V, W_X_T
 
         x_ref = np.zeros(state.nx)
         run.addCost("x", quad(crocoddyl.ResidualModelState(state, x_ref, nu), [W_Q] * task.nq + [W_V] * task.nv), 1.0)
-        run.addCost("u", quad(crocoddyl.ResidualModelControl(state, nu)), W_U)
+        run.addCost("u", quad(crocoddyl.ResidualModelControlGrav(state, nu)), W_U)   # u - g(q)
+        run.addCost("ee", quad(crocoddyl.ResidualModelFrameTranslation(state, task.ee, task.target(xi), nu)), W_EE)
         term.addCost("ee", quad(crocoddyl.ResidualModelFrameTranslation(state, task.ee, task.target(xi), nu)), W_EE_T)
         term.addCost("twist", quad(crocoddyl.ResidualModelFrameVelocity(state, task.ee, pin.Motion.Zero(),
                                                                        pin.LOCAL_WORLD_ALIGNED, nu)), W_TWIST_T)
@@ -90,6 +92,16 @@ def check_same_dynamics(task, xi) -> float:
     xs = problem.rollout(list(U))
     X = task.simulate(task.initial_state(xi), U)
     return float(np.max(np.abs(np.array(xs) - X)))
+
+
+def check_same_cost(task, xi) -> float:
+    """Relative difference of crocoddyl's and our cost on the same trajectory (the naive guess rolled out)."""
+    problem = croc_problem(task, xi)
+    _, U = task.naive_guess(xi)
+    X = task.simulate(task.initial_state(xi), U)
+    c = problem.calc(list(X), list(U))
+    ours = task.cost(X, U, xi)
+    return float(abs(c - ours) / max(1.0, abs(ours)))
 
 
 def solve_croc(task, xi, kind: str, max_iter: int = 1000):
@@ -126,7 +138,8 @@ def main() -> None:
     for name in a.tasks.split(","):
         task = get_task(name)
         ours = get_solver(task, max_iter=1000)
-        print(f"{name}: dynamics check, max |x_croc - x_ours| = {check_same_dynamics(task, sample_xi(task, 0, 0)):.2e}")
+        print(f"{name}: dynamics check, max |x_croc - x_ours| = {check_same_dynamics(task, sample_xi(task, 0, 0)):.2e}; "
+              f"cost check, relative |cost_croc - cost_ours| = {check_same_cost(task, sample_xi(task, 0, 0)):.2e}")
         for i in range(a.n):
             xi = sample_xi(task, 0, i)
             X0, U0 = task.naive_guess(xi)

@@ -148,6 +148,17 @@ class PoolExecutor(Executor):
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self._pool is not None:
+            # Ctrl-C: the workers ignore SIGINT (no tracebacks from each of them); stop them now instead of
+            # waiting for their solves. Their jobs' results were not persisted, so a re-run redoes them.
+            for p in list(getattr(self._pool, "_processes", {}).values()):
+                p.terminate()
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            return
+        self.close()
+
 
 def check_executor_options(kind: str | None, workers: int | None, scheduler: str | None) -> str:
     """Validate the options of :func:`make_executor` (cheap, starts nothing); the resolved kind."""

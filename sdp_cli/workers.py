@@ -13,6 +13,12 @@ import time
 def worker_init(parent: int | None = None) -> None:
     # one BLAS/OpenMP thread per worker: the parallelism is across processes
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    # Ctrl-C reaches the whole foreground process group: the parent handles it (and stops the pool), so a
+    # worker ignores it instead of printing its own KeyboardInterrupt traceback. Training inside a worker
+    # (`sdp pipeline --run`) installs its own handler (sdp_cli.interrupts) and checkpoints at a step boundary.
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent(parent)
 
 
