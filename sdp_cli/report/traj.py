@@ -59,9 +59,10 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     """TO alone vs each method's policy and refined solution on a few test instances (the best
     run of each method at the last iteration it reached; the test instances are the same for all).
 
-    Pendulums: the tip in the y-z plane; UR5 and quadrotor seen from above (x-y) with the
-    columns; start (blue dot) and goal (red star) of each instance. TO alone and refined come
-    from the refine artifact's ``inst_base_X`` / ``inst_pol_X``.
+    Pendulums: the tip's distance to the goal over time, with the goal tolerance (their tip paths all lie
+    on the same circle, which showed nothing); UR5 and quadrotor seen from above (x-y) with the columns,
+    start (blue dot) and goal (red star) of each instance. TO alone and refined come from the refine
+    artifact's ``inst_base_X`` / ``inst_pol_X``.
     """
     from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
@@ -94,9 +95,13 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
             _draw_columns_top(ax, task)
 
         def draw(X, label, **kw):
-            if np.all(np.isfinite(X)):
+            if not np.all(np.isfinite(X)):
+                return
+            if top:
                 P = trajectory_points(task, X)
                 ax.plot(P[:, ix], P[:, iy], label=label, **kw)
+            else:   # pendulums: distance of the tip to the goal over time
+                ax.plot(np.arange(len(X)) * task.dt, [task.goal_distance(x, xi) for x in X], label=label, **kw)
         # TO alone that did not converge is drawn dotted: its last iterate, not a solution
         failed = base_ok is not None and not base_ok[j]
         draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7, ls=":" if failed else "-")
@@ -104,21 +109,25 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
             draw(r["X"][j], f"{method_label(m)} policy", color=COLORS.get(m, "tab:orange", among=runs), lw=1.4)
             draw(f["inst_pol_X"][j], f"refined from {method_label(m)}", color=COLORS.get(m, "tab:orange", among=runs),
                  lw=1.0, ls="--")
-        P0 = trajectory_points(task, task.initial_state(xi)[None])
-        ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
-        g = goal_point(task, xi)
-        if g is not None:
-            ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
+        if top:
+            P0 = trajectory_points(task, task.initial_state(xi)[None])
+            ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
+            g = goal_point(task, xi)
+            if g is not None:
+                ax.plot(g[ix], g[iy], "*", color="tab:red", ms=10, label="goal")
+        else:
+            ax.axhline(task.goal_tolerance, color="tab:red", lw=0.8, ls=":", label="goal tolerance")
         to_line = [] if base_ok is None else [f"TO alone: {'not converged (dotted)' if failed else 'converged'}"]
         ax.set_title("\n".join([f"test instance {j}"] + to_line + [
             f"{method_label(m)}: {_outcome(task, r, j)}" + _refine_note(f, j) for m, (r, f, *_) in runs.items()]),
             fontsize=8)
-        ax.set_xlabel("x (m)" if top else "y (m)")
-        ax.set_ylabel("y (m)" if top else "z (m)")
-        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x (m)" if top else "time (s)")
+        ax.set_ylabel("y (m)" if top else "tip distance to the goal (m)")
+        if top:
+            ax.set_aspect("equal", adjustable="datalim")
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8, frameon=False)
-    what = "tip of the pendulum, y-z plane" if not top else "seen from above, x-y plane"
+    what = "the tip's distance to the goal over time" if not top else "seen from above, x-y plane"
     n = len(r0["X"])
     drawn = "instance 0" if n_show == 1 else f"instances 0-{n_show - 1}"
     conv = "" if base_ok is None else f"; TO alone converged on {int(base_ok.sum())} of {n}"
