@@ -225,7 +225,7 @@ def manifest_path(csv: str | os.PathLike) -> Path:
 
 
 def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None,
-                     wall_time: float | None = None) -> Path:
+                     wall_time: float | None = None, wall_partial: bool = False) -> Path:
     """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar (with ``wall_time``, the
     measured seconds of the whole evaluation, when given), and the manifest of ``artifacts`` (one
     :func:`evaluation_artifacts` per row) next to it."""
@@ -236,7 +236,8 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
     out = Path(out)
     path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))
     save_timing(out, {"rows": df[timed].astype(float).to_dict("records"),
-                      **({"wall_time": float(wall_time)} if wall_time is not None else {})})
+                      **({"wall_time": float(wall_time), "wall_partial": bool(wall_partial)}
+                         if wall_time is not None else {})})
     if artifacts is not None:
         if len(artifacts) != len(rows):
             raise SdpError(f"{len(rows)} evaluation rows but {len(artifacts)} artifact records")

@@ -190,6 +190,7 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     import time
 
     t0 = time.perf_counter()
+    new_work = reused = 0      # artifacts made by this call / found made by an earlier one
     rows, artifacts = [], []
     t_as = list(cfg.eval_t_a or (cfg.t_a,))
     if last:
@@ -199,22 +200,35 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     for (ckpt, prefix), t_a in ((c, t) for c in ckpts for t in t_as):
         tag = prefix + (f"ta{t_a}" if t_a is not None else "ta-default")
         ro, rf = eval_dir / f"rollout_{tag}.npz", eval_dir / f"refined_{tag}.npz"
-        if not ro.exists():
+        if ro.exists():
+            reused += 1
+        else:
+            new_work += 1
             with count_progress(f"rollout {tag} (time steps)", None, progress) as on_step:
                 _, s = rollout(ckpt, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
                                                              k_rollout=cfg.k_rollout), device=cfg.device,
                                on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
-        if cfg.eval_refine and not rf.exists():
+        if cfg.eval_refine and rf.exists():
+            reused += 1
+        elif cfg.eval_refine:
+            new_work += 1
             with count_progress(f"refine {tag} (instances)", None, progress) as on_done:
                 refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
                        executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done)
         rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
         artifacts.append(evaluation_artifacts(ro, rf if cfg.eval_refine else None))
     df = pd.DataFrame(rows)
-    # the measured wall time of this evaluation (rollouts, refinement with every baseline, evaluation), not a
-    # sum of parts; an evaluation resumed after a kill counts its last attempt
-    write_evaluation(rows, eval_dir / "eval.csv", artifacts, wall_time=time.perf_counter() - t0)
+    # the measured wall time of the evaluation (rollouts, refinement with every baseline, evaluation), not a sum
+    # of parts. A resume that found every artifact made keeps the recorded one; one that found some made records
+    # its own time and says the measurement is partial.
+    from sdp_cli.data.artifacts import load_timing
+
+    before = load_timing(eval_dir / "eval.csv")
+    wall, partial = time.perf_counter() - t0, bool(reused)
+    if not new_work and "wall_time" in before:
+        wall, partial = before["wall_time"], bool(before.get("wall_partial", False))
+    write_evaluation(rows, eval_dir / "eval.csv", artifacts, wall_time=wall, wall_partial=partial)
     return df
 
 

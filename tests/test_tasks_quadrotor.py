@@ -62,6 +62,21 @@ def test_casadi_step_matches_pinocchio():
                                    task.control_to_tau(u), atol=1e-15)
 
 
+def test_gains_of_the_version_2_task_match_finite_differences():
+    """The default quadrotor-0 (with the arrival term), full horizon: K_t vs FD of re-solved tails at free steps."""
+    from sdp_cli.trajopt import get_solver
+    from sdp_cli.trajopt.verify import check_gains
+
+    task = get_task("quadrotor-0")
+    xi = task.sample_xi(np.random.default_rng(0))
+    res = get_solver(task, solver="ipopt", tol=1e-10, jit=False).solve(xi, *task.naive_guess(xi))
+    assert res.converged, res.status
+    free = np.flatnonzero(~res.clamped.any(1))
+    assert len(free) >= 3
+    for c in check_gains(task, res, [int(free[0]), int(free[len(free) // 2]), int(free[-1])], eps=1e-5):
+        assert c.converged and c.rel_error < 1e-3, (c.t, c.rel_error)
+
+
 def test_costs_match_their_formula():
     task = get_task("quadrotor-0")
     rng = np.random.default_rng(1)
@@ -73,7 +88,9 @@ def test_costs_match_their_formula():
     state = 0.5 * (0.1 * e @ e + 1e-2 * 4 * rot @ rot + 1e-3 * v @ v)
     np.testing.assert_allclose(float(task.f_running_cost(x, u, xi)), 0.01 * (state + 0.5 * 0.1 * du @ du),
                                rtol=1e-12)
-    np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)), 12 * state, rtol=1e-12)
+    # results version 2: plus the arrival term 1/2 (100 ||e||^2 + 10 ||v||^2)
+    np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)), 12 * state + 0.5 * (100 * e @ e + 10 * v @ v),
+                               rtol=1e-12)
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -182,10 +199,13 @@ def test_bounded_least_squares_satisfies_kkt():
 
 
 # ----------------------------------------------------------------------------- optimizer + gains
-def _solve(name, T, start_xy, goal_xy, z=1.2):
+def _solve(name, T, start_xy, goal_xy, z=1.2, arrival=False):
+    """A solve of a hand-made scene. The solver tests' scenes (a free step and a clamped one, a path grazing the
+    column) were made on aligator's weights alone (``arrival=False``, results version 1): with the arrival term
+    of version 2 the short horizons saturate every thrust and the paths no longer graze the column."""
     from sdp_cli.trajopt import get_solver
 
-    task = get_task(name, T=T)
+    task = get_task(name, T=T, arrival=arrival)
     xi = task.sample_xi(np.random.default_rng(0))
     xi[:3] = [*start_xy, z]
     xi[task.nx:task.nx + 3] = [*goal_xy, z]
@@ -266,7 +286,7 @@ def test_weak_thrust_bound_is_polished_to_the_exact_active_set():
     from sdp_cli.trajopt.verify import check_gains
 
     d = np.load(WEAK_BOUND)
-    task = get_task(str(d["task"]))
+    task = get_task(str(d["task"]), arrival=False)     # recorded on aligator's weights (results version 1)
     res = get_solver(task, jit=False).solve(d["xi"], *task.naive_guess(d["xi"]))
     assert res.converged and res.polish_iterations > 0, res.status
     np.testing.assert_array_equal(res.clamped, d["clamped_exact"])

@@ -79,13 +79,15 @@ def test_casadi_step_and_costs_match_pinocchio():
         u = rng.uniform(task.u_lb, task.u_ub)
         np.testing.assert_allclose(np.asarray(task.f_step(x, u)).ravel(), task.step(x, u), atol=1e-10)
         e = task.ee_position_np(x[:6]) - task.target(xi)
-        # aligator ur5_reach.py weights; the tool twist from Pinocchio
+        # results version 2: aligator ur5_reach.py's weights plus a running reach term (300), the velocity
+        # weight 0.3 and u regularized around Pinocchio's gravity torques; the tool twist from Pinocchio
+        g = pin.computeGeneralizedGravity(task.model, task.data, x[:6])
         pin.forwardKinematics(task.model, task.data, x[:6], x[6:])
         pin.updateFramePlacements(task.model, task.data)
         tw = pin.getFrameVelocity(task.model, task.data, task.ee, pin.LOCAL_WORLD_ALIGNED).vector
         np.testing.assert_allclose(float(task.f_running_cost(x, u, xi)),
-                                   0.01 * 0.5 * (1e-4 * x[:6] @ x[:6] + 1e-2 * x[6:] @ x[6:] + 1e-4 * u @ u),
-                                   rtol=1e-12)
+                                   0.01 * 0.5 * (1e-4 * x[:6] @ x[:6] + 0.3 * x[6:] @ x[6:] + 1e-4 * (u - g) @ (u - g)
+                                                 + 300 * e @ e), rtol=1e-10)
         np.testing.assert_allclose(float(task.f_terminal_cost(x, xi)),
                                    0.5 * (100 * e @ e + 100 * tw @ tw + 1e-4 * x @ x), rtol=1e-10)
         np.testing.assert_allclose(np.asarray(ca.evalf(task.ee_position(ca.DM(x[:6])))).ravel(),

@@ -13,7 +13,8 @@ Columns (seconds of wall time, from the timing sidecars of the files the evaluat
   that iteration (``eval_t_a_values``, e.g. "1,4,8"); ``eval_ss_solve_s``: the single-shooting
   baseline's solves (from the policy's and the naive controls) where the loop ran it (fig2: about
   19 s an evaluation); ``eval_wall_s``: the evaluation's measured wall time (rollouts, every solve,
-  compilation, writing; recorded by ``sdp loop`` since results version 2, NaN before);
+  compilation, writing; recorded by ``sdp loop`` since results version 2; NaN before, and where a
+  resumed evaluation found part of its work done, so measured only the rest);
 - ``total_s``: collection wall + training + the evaluation's measured wall time (where it was not
   measured, the sum of its parts, flagged by ``total_measured`` False).
 """
@@ -61,7 +62,8 @@ def _eval_wall(g: pd.DataFrame) -> float:
     """The measured wall seconds of the evaluations these rows come from (their ``eval.csv`` sidecars)."""
     if "source" not in g:
         return float("nan")
-    walls = [load_timing(Path(str(s)) / "eval.csv").get("wall_time", np.nan) for s in g["source"].dropna().unique()]
+    recs = [load_timing(Path(str(s)) / "eval.csv") for s in g["source"].dropna().unique()]
+    walls = [r.get("wall_time", np.nan) if not r.get("wall_partial") else np.nan for r in recs]
     return float(np.sum(walls)) if walls and np.all(np.isfinite(walls)) else float("nan")
 
 

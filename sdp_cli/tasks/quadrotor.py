@@ -140,7 +140,8 @@ class QuadrotorTask(StartGoalTask):
     action = "x"
     alpha_sobolev = 1e-3   # paper Sec. IV: "alpha_Sobolev = 1e-3 performs better" on the quadrotor
 
-    def __init__(self, n_obstacles: int = 0, T: int = 180, dt: float = 0.01, name: str | None = None):
+    def __init__(self, n_obstacles: int = 0, T: int = 180, dt: float = 0.01, name: str | None = None,
+                 arrival: bool = True):
         if n_obstacles not in COLUMNS:
             raise SdpError(f"obstacles must be one of {sorted(COLUMNS)}, got {n_obstacles}")
         if int(T) < 2:
@@ -148,6 +149,7 @@ class QuadrotorTask(StartGoalTask):
         if not dt > 0:
             raise SdpError(f"dt must be > 0, got {dt}")
         self.n_obstacles = int(n_obstacles)
+        self.arrival = bool(arrival)   # False: aligator's weights alone (results version 1; the solver tests' scenes)
         self.name = name or f"quadrotor-{self.n_obstacles}"
         self.T, self.dt = int(T), float(dt)
         self.model = load_model("hector")
@@ -168,7 +170,7 @@ class QuadrotorTask(StartGoalTask):
                 "arm": ARM, "c_tau": C_TAU, "u_bounds": [U_MIN, U_MAX], "r_quad": R_QUAD,
                 "z_floor": Z_FLOOR, "z_ceil": Z_CEIL,
                 "weights": {"p": W_P, "v": W_V, "rot": W_ROT, "u": W_U, "terminal": W_TERMINAL,
-                            "p_arrive": W_P_ARRIVE, "v_arrive": W_V_ARRIVE}}
+                            **({"p_arrive": W_P_ARRIVE, "v_arrive": W_V_ARRIVE} if self.arrival else {})}}
 
     # --------------------------------------------------------------- distribution
     def clearance(self, p: np.ndarray) -> np.ndarray:
@@ -224,8 +226,8 @@ class QuadrotorTask(StartGoalTask):
 
     def _terminal_cost(self, x, xi):
         e = x[:3] - xi[self.nx:self.nx + 3]
-        return W_TERMINAL * self._state_cost(x, xi) + 0.5 * (W_P_ARRIVE * ca.sumsqr(e)
-                                                             + W_V_ARRIVE * ca.sumsqr(x[self.nq:]))
+        arrive = 0.5 * (W_P_ARRIVE * ca.sumsqr(e) + W_V_ARRIVE * ca.sumsqr(x[self.nq:])) if self.arrival else 0.0
+        return W_TERMINAL * self._state_cost(x, xi) + arrive
 
     def state_constraint_groups(self) -> dict[str, slice]:
         groups = {"floor_ceiling": slice(0, 2)}
