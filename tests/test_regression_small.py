@@ -9,26 +9,25 @@ final Sobolev error exceeds SMALL_SDP_MAX_SOBOLEV. Then `sdp report` must have w
 paper's files. Every command pins torch to 1 thread (`--threads` default), so the result does
 not depend on the machine's core count or on OMP_NUM_THREADS.
 
-Thresholds, derived by `python bench/regression_threshold.py --variants sdp,flipped,alpha0
---seeds 0,1,2,3,4 --thread-seeds 0 --other-seeds 0,1,2` at commit efd5cf0 (with the optimizer's
-active-set polish, which changes the collected data slightly; 2-core CPU, two runs at a time), policy
-mean cost at the last iteration (success rate in brackets):
+Thresholds, derived by `python bench/regression_threshold.py --variants sdp,flipped,alpha0 --seeds 0,1,2
+--thread-seeds 0 --other-seeds 0,1` on 2026-11-27 at results version 2 (chunk starts cover the episode end:
+0 .. T - 1 with held rows; the pendulum task is unchanged), 2-core CPU shared with four training jobs, one
+run at a time; policy mean cost at the last iteration (success rate in brackets):
 
-- SDP, 1 thread, seeds 0-4: 19.78 (0.65), 15.14 (0.85), 15.07 (1.00), 15.09 (1.00), 17.29 (0.60);
-  2 threads, seed 0: 19.36 (0.60). Worst: 19.78.
-- flipped Jacobian sign (Sobolev targets negated), seeds 0-2: 46.89, 40.70, 36.81 (0.10, 0.00,
-  0.00). Best: 36.81. SMALL_SDP_MAX_COST = 28.3, halfway: this check fails on a flipped sign.
-- alpha_Sobolev = 0, seeds 0-2: 28.45 (0.10), 15.21 (0.75), 15.35 (0.85): NOT separable from SDP
-  by the policy's cost. At this budget on the faithful pendulum the Sobolev term does not
-  measurably help the rollouts (a measured negative result, not a threshold to tune).
+- SDP, 1 thread, seeds 0-2: 18.74 (0.55), 15.17 (0.90), 15.08 (0.95); 2 threads, seed 0: 21.70 (0.55).
+  Worst: 21.70.
+- flipped Jacobian sign (Sobolev targets negated), seeds 0-1: 41.27, 41.67 (0.00, 0.00). Best: 41.27.
+  SMALL_SDP_MAX_COST = 31.5, halfway: this check fails on a flipped sign.
+- alpha_Sobolev = 0, seeds 0-1: 20.45 (0.20), 15.10 (0.80): NOT separable from SDP by the policy's cost
+  (as at results version 1: at this budget on the faithful pendulum the Sobolev term does not measurably
+  help the rollouts; a measured negative result, not a threshold to tune).
 
-A second check catches alpha = 0: SDP's Sobolev error at the end of training (the `sobolev`
-column of iteration 1's metrics.csv, the balanced term, mean of the last 50 steps), i.e. how
-well the policy's first-order behaviour matches the optimizer's gains. Same runs: SDP 0.00342,
-0.00010, 0.00021, 0.00008, 0.00128 (1 thread), 0.00215 (2 threads), worst 0.00342; alpha = 0:
-0.225, 0.140, 0.091, best 0.091. SMALL_SDP_MAX_SOBOLEV = 0.0177, the geometric midpoint. (A
-flipped sign fits its flipped targets, 0.0002-0.0012: the cost check catches that one.)
-(Before the polish, at d96077c: 31.6 and 0.0149 from SDP's worst 22.88 / 0.00255.)
+A second check catches alpha = 0: SDP's Sobolev error at the end of training (the `sobolev` column of
+iteration 1's metrics.csv, the balanced term, mean of the last 50 steps), i.e. how well the policy's
+first-order behaviour matches the optimizer's gains. Same runs: SDP 0.00330, 0.00031, 0.00020 (1 thread),
+0.00246 (2 threads), worst 0.00330; alpha = 0: 0.159, 0.124, best 0.124. SMALL_SDP_MAX_SOBOLEV = 0.0202, the
+geometric midpoint. (A flipped sign fits its flipped targets, 0.0005-0.0008: the cost check catches that one.)
+(Results version 1, at efd5cf0: 28.3 and 0.0177 from SDP's worst 19.78 / 0.00342.)
 This run is seed 0 on 1 thread: `dvc repro` runs the same `sdp loop` as the script (the DVC stage
 `group`), so its numbers are the script's seed-0 row. Whoever changes a task or the training re-runs the script and
 updates these numbers.
@@ -46,8 +45,8 @@ import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL_SDP_MAX_COST = 28.3
-SMALL_SDP_MAX_SOBOLEV = 0.0177
+SMALL_SDP_MAX_COST = 31.5
+SMALL_SDP_MAX_SOBOLEV = 0.0202
 
 
 def _source_files() -> list[str]:
