@@ -151,9 +151,16 @@ class PoolExecutor(Executor):
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self._pool is not None:
             # Ctrl-C: the workers ignore SIGINT (no tracebacks from each of them); stop them now instead of
-            # waiting for their solves. Their jobs' results were not persisted, so a re-run redoes them.
-            for p in list(getattr(self._pool, "_processes", {}).values()):
+            # waiting for their solves (SIGTERM: a solve dies at once, its result was not persisted and a re-run
+            # redoes it; a training job writes its checkpoint at the next step boundary and exits,
+            # sdp_cli.interrupts), and wait for them so that no worker outlives this process.
+            procs = list(getattr(self._pool, "_processes", {}).values())
+            for p in procs:
                 p.terminate()
+            for p in procs:
+                p.join(timeout=30)
+                if p.is_alive():
+                    p.kill()
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
             return

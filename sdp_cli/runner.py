@@ -54,7 +54,14 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     cfg = LoopConfig(**{**config, "n_traj": tuple(config["n_traj"]), "eval_t_a": tuple(config["eval_t_a"]),
                         "eval_t_a_last": tuple(config["eval_t_a_last"]), "save_at": tuple(config["save_at"]),
                         "device": str(resolve_device(device))})
-    return run_loop(cfg, out, log=log).to_dict("records")
+    try:
+        return run_loop(cfg, out, log=log).to_dict("records")
+    except KeyboardInterrupt:
+        import multiprocessing as mp
+
+        if mp.parent_process() is not None:   # a pool worker stopped by Ctrl-C/SIGTERM: checkpoint written, leave
+            os._exit(130)
+        raise
 
 
 def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:

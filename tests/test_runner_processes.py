@@ -123,3 +123,38 @@ def test_kill_9_takes_workers_and_their_children_along(root, tmp_path, under_dvc
                 os.kill(p, signal.SIGKILL)
             except OSError:
                 pass
+
+
+MID = LONG.replace("epochs: 100000", "epochs: 1500").replace("train: {batch_size: 8}",
+                                                             "train: {batch_size: 8, down_dims: [8, 16], n_groups: 4}")
+
+
+def test_ctrl_c_of_the_parallel_runner_then_the_same_command_gives_the_same_results(root, tmp_path):
+    """Ctrl-C (SIGINT to the runner's process group, as a terminal sends it) while both runs train, then the
+    same command: every run's evaluation and training curve equal an uninterrupted runner's."""
+    import pandas as pd
+
+    (root / "pipelines" / "mid.yaml").write_text(MID)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    ref, out = tmp_path / "runs" / "ref", tmp_path / "runs" / "mid"
+    subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(ref)), cwd=root, env=env,
+                   check=True, capture_output=True)
+    p = subprocess.Popen(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(out)), cwd=root, env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    runs = ("pendulum-dp-n2-s0", "pendulum-dp-n2-s1")
+    assert _wait_for(lambda: all((out / r / "it0" / "policy" / "metrics.csv").exists() for r in runs), timeout=120)
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "Traceback" not in err.decode(), err.decode()[-2000:]
+    assert _wait_for(lambda: not _procs_with(str(out)), timeout=20)
+    from sdp_cli.policy.checkpoint import load_checkpoint
+
+    assert not all(load_checkpoint(out / r / "it0" / "policy")["finished"] for r in runs)   # stopped mid-training
+    r = subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(out)), cwd=root, env=env,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for run in runs:
+        a, b = (pd.read_csv(d / run / "summary.csv") for d in (ref, out))
+        pd.testing.assert_frame_equal(a, b)
+        for f in ("metrics.csv", "checkpoint.pt"):
+            assert (ref / run / "it0" / "policy" / f).read_bytes() == (out / run / "it0" / "policy" / f).read_bytes()
