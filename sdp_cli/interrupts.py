@@ -7,7 +7,8 @@ optimizer half-way through it, so a checkpoint written there does not resume bit
 which the CLI turns into "Interrupted." and exit code 130. The same signal again while one is pending
 interrupts at once (Ctrl-C twice: an impatient user is never ignored); another signal does not (a pool
 worker gets the terminal's SIGINT and then its parent's SIGTERM, and must still stop at a boundary).
-Outside the main thread (where Python cannot install handlers) nothing is deferred.
+Outside the main thread (where Python cannot install handlers) nothing is deferred, and a signal the process
+ignores (``nohup ... &`` ignores SIGINT; so do pool workers, whose parent handles Ctrl-C) stays ignored.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def deferred():
         if state.signum is None:
             state.signum = signum
 
-    old = {s: signal.signal(s, handler) for s in SIGNALS}
+    old = {s: signal.signal(s, handler) for s in SIGNALS if signal.getsignal(s) is not signal.SIG_IGN}
     try:
         yield state
     finally:

@@ -140,7 +140,9 @@ def test_ctrl_c_of_the_parallel_runner_then_the_same_command_gives_the_same_resu
     subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(ref)), cwd=root, env=env,
                    check=True, capture_output=True)
     p = subprocess.Popen(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(out)), cwd=root, env=env,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
+                         # as from a terminal, even when this suite runs in the background (SIGINT ignored)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     runs = ("pendulum-dp-n2-s0", "pendulum-dp-n2-s1")
     assert _wait_for(lambda: all((out / r / "it0" / "policy" / "metrics.csv").exists() for r in runs), timeout=120)
     os.killpg(p.pid, signal.SIGINT)
