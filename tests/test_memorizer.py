@@ -11,12 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
-
 from sdp_cli.data.chunks import ChunkDataset
-from sdp_cli.experiment import GROUP_DEFAULTS, group_items
 from sdp_cli.tasks import get_task, task_names
-from sdp_cli.tasks.contract import MEMORIZER_RTOL, memorizer_costs, pipeline_cases, solve_instances
+from sdp_cli.tasks.contract import (MEMORIZER_RTOL, memorizer_costs, pipeline_cases, pipeline_chunk_cases,
+                                   solve_instances)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,23 +24,12 @@ def replan_times(T: int, t_a: int) -> list[int]:
     return list(range(0, T, t_a))
 
 
-def pipeline_triples():
-    out = set()
-    for path in sorted((ROOT / "pipelines").glob("*.yaml")):
-        for _, g in group_items(yaml.safe_load(path.read_text())):
-            g = {**GROUP_DEFAULTS, **g}
-            h = g["horizon"]
-            for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}:
-                out.add((g["task"], h, t_a))
-    return sorted(out)
-
-
 def test_every_rollout_replanning_time_is_a_training_start():
     """For each (task T, T_h, T_a) of pipelines/*.yaml: the chunk starts cover every replanning time, and
     the rollout asks for chunks exactly at those times."""
     from sdp_cli.rollout import RolloutConfig, rollout_policy
 
-    triples = pipeline_triples()
+    triples = sorted(pipeline_chunk_cases(ROOT))
     assert len(triples) > 10
     for task_name, T_h, T_a in triples:
         T = get_task(task_name).T

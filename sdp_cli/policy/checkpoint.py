@@ -42,8 +42,6 @@ def canonical(obj):
         return {canonical(k): canonical(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return type(obj)(canonical(v) for v in obj)
-    if isinstance(obj, int) and not isinstance(obj, bool):
-        return int(obj)
     return obj
 
 

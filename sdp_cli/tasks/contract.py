@@ -156,30 +156,36 @@ def optimum_rows(task: Task, cases, n_traj: int = 2, arrays: dict | None = None)
     for T_h, T_a in cases:
         rel = np.max(np.abs(memorizer_costs(task, arrays, T_h, T_a) - to) / np.abs(to))
         rows.append(_row(f"memorizer (T_h {T_h}, T_a {T_a}) = TO cost (relative)", rel, MEMORIZER_RTOL))
-    timing = [optimum_timing(task_with_action(task, None), X, U, xi)
+    timing = [optimum_timing(task, X, U, xi)
               for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])]
     rows.append(_row("one step late costs <= 2x the optimum", max(t["late1"] for t in timing), WELL_POSED_LATE_RATIO))
     return rows, timing
 
 
-def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, int]]:
-    """The (T_h, T_a) pairs the experiments in ``root/pipelines`` roll out ``task_name``'s chunked policies
-    with (collection warm starts and every evaluated T_a), plus the defaults (T_h 32, T_a 31)."""
+def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
+    """``(task, T_h, T_a)`` of every chunked policy the experiments in ``root/pipelines`` roll out: the
+    collection warm starts (``t_a``, default ``T_h - 1``) and every evaluated T_a."""
     import yaml
 
     from sdp_cli.experiment import GROUP_DEFAULTS, PIPELINES_DIR, group_items
     from sdp_cli.policy.registry import get_method
 
-    cases = {(32, 31)}
+    out = set()
     for path in sorted((root / PIPELINES_DIR).glob("*.yaml")):
         for _, g in group_items(yaml.safe_load(path.read_text()) or {"groups": []}):
             g = {**GROUP_DEFAULTS, **g}
-            if g.get("task") != task_name or not any(get_method(m).family.chunked for m in g["methods"]):
+            if not any(get_method(m).family.chunked for m in g["methods"]):
                 continue
             h = int(g["horizon"])
-            for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}:
-                cases.add((h, int(t_a)))
+            out |= {(g["task"], h, int(t_a)) for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}}
+    return out
+
+
+def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, int]]:
+    """The (T_h, T_a) pairs the experiments in ``root/pipelines`` roll out ``task_name``'s chunked policies
+    with (:func:`pipeline_chunk_cases`), plus the defaults (T_h 32, T_a 31)."""
     from sdp_cli.tasks import get_task
 
     T = get_task(task_name).T
+    cases = {(32, 31)} | {(h, a) for t, h, a in pipeline_chunk_cases(root) if t == task_name}
     return sorted((h, a) for h, a in cases if h <= T + 1)

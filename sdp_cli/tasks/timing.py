@@ -46,7 +46,7 @@ def hold_action(task: Task, x0: np.ndarray) -> np.ndarray:
     """The action that keeps ``x0`` at rest: ``g(x0)`` for state actions; for torque, the controls of
     inverse dynamics where the task has it (gravity compensation), else zero."""
     if task.action != "u":
-        return action_sequence(task, x0[None, None], np.zeros((1, 0, task.nu)), task.action)[0, 0]
+        return task.state_action(x0)
     try:
         return task.inverse_dynamics(x0, x0)
     except NotImplementedError:
