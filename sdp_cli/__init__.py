@@ -7,5 +7,6 @@ __version__ = "0.1.0"
 #: report change does not. Every loop run records it (``loop_config.json``), and the DVC stage starts
 #: over (after moving the old folder aside, never deleting it) only runs of another results version
 #: or other settings. History: 1 = everything before 2026-11-27; 2 = chunks cover the episode end,
-#: UR5 and quadrotor redefined (issue "A perfect learner must score TO's cost").
-RESULTS_VERSION = 2
+#: UR5 and quadrotor redefined (issue "A perfect learner must score TO's cost"); 3 = UR5 random
+#: targets kept 0.1 m inside the arm's reach (at most 0.85 m from the shoulder), same issue.
+RESULTS_VERSION = 3

@@ -30,10 +30,19 @@ def _version(value: bool) -> None:
 
 
 @app.callback()
+@clean_errors
 def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=_version, is_eager=True,
                                                           help="Print the package version and git revision.")] = None,
+          task_module: Annotated[Optional[list[Path]], typer.Option(
+              "--task-module", help="A Python file that registers tasks of your own (sdp_cli.tasks.register); "
+                                    "repeatable. Worker processes inherit it through SDP_TASK_MODULES.")] = None,
           ) -> None:
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
+    if task_module:
+        from sdp_cli.tasks import load_task_module
+
+        for f in task_module:
+            load_task_module(f)
 
 
 @app.command("tasks")

@@ -70,3 +70,29 @@ def test_changed_constant_compiles_a_new_library(monkeypatch, tmp_path):
     assert next(iter(new)).name.split("_")[:-1] == next(iter(libs)).name.split("_")[:-1]
     xi = changed_1.sample_xi(np.random.default_rng(0))
     assert np.isfinite(s.solve(xi, *changed_1.naive_guess(xi)).cost)
+
+
+def test_results_version_1_ur5_and_quadrotor_artifacts_are_refused(monkeypatch):
+    """Datasets and policies made for the definitions before issue "A perfect learner..." (aligator's
+    terminal-only UR5 reach, the quadrotor without its arrival term, random UR5 targets up to full
+    extension) are refused by identity, not silently reused."""
+    import sdp_cli.tasks.ur5 as ur5_module
+    from sdp_cli.tasks.ur5 import Ur5Task
+
+    now = Ur5Task(r_tgt=True)
+    with monkeypatch.context() as m:      # aligator's running weights: no ee term, 1e-2 ||v||^2
+        m.setattr(ur5_module, "W_EE", 0.0)
+        m.setattr(ur5_module, "W_V", 1e-2)
+        old = Ur5Task(r_tgt=True)
+        stored = old.params()
+    assert stored["model_id"] != now.model_id
+    with pytest.raises(SdpError, match="another definition of task 'ur5-rtgt'"):
+        check_task_params(now, stored, "dataset")
+    # same costs, targets sampled up to the arm's full reach (results version 2): another distribution
+    v2 = dict(now.params())
+    v2.pop("target_region")
+    with pytest.raises(SdpError, match="differ .* in: target_region"):
+        check_task_params(now, v2, "dataset")
+    quad = get_task("quadrotor-0")
+    with pytest.raises(SdpError, match="another definition of task 'quadrotor-0'"):
+        check_task_params(quad, get_task("quadrotor-0", arrival=False).params(), "policy")

@@ -10,7 +10,7 @@ import pytest
 
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task, task_descriptions
-from sdp_cli.tasks.ur5 import INIT_SPREAD, P_FIXED, Q_HOME, TGT_MIN_R, TGT_MIN_Z, VARIANTS, Ur5Task
+from sdp_cli.tasks.ur5 import INIT_SPREAD, P_FIXED, Q_HOME, TGT_MAX_REACH, TGT_MIN_R, TGT_MIN_Z, VARIANTS, Ur5Task
 
 NAMES = list(VARIANTS)
 
@@ -53,7 +53,8 @@ def test_distribution(task):
         assert np.all(np.abs(q0 - Q_HOME) <= INIT_SPREAD)
     if task.r_tgt:
         assert np.all(tgt[:, 2] >= TGT_MIN_Z) and np.all(np.hypot(tgt[:, 0], tgt[:, 1]) >= TGT_MIN_R)
-        assert np.all(np.linalg.norm(tgt - [0, 0, 0.089159], axis=1) < 1.0)  # within the arm's reach
+        # within the arm's reach, away from the stretched-arm singularity (shoulder at (0, 0, 0.089159))
+        assert np.all(np.linalg.norm(tgt - [0, 0, 0.089159], axis=1) <= TGT_MAX_REACH)
         assert np.ptp(tgt, axis=0).min() > 0.5
     else:
         assert np.all(tgt == P_FIXED)

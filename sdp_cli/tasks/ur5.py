@@ -13,8 +13,9 @@ The four variants come from two booleans (Sec. IV-B of the paper):
   v0 = 0 always.
 - ``r_tgt`` (names with ``rtgt``): the target is the ``tool0`` position of a random
   configuration (joints uniform in ``[-pi, pi]``), kept when it is at least 0.1 m above the
-  base plane and at least 0.2 m from the base's vertical axis (so reachable by
-  construction); otherwise the fixed target ``P_FIXED = (0.15, 0.65, 0.5)`` m (aligator's).
+  base plane, at least 0.2 m from the base's vertical axis and at most 0.85 m from the shoulder
+  (the arm reaches 0.95 m; so reachable by construction, and not at the stretched-arm
+  singularity); otherwise the fixed target ``P_FIXED = (0.15, 0.65, 0.5)`` m (aligator's).
 
 Task parameters ``xi = (q0 (6), v0 (6), p_target (3))``, ``n_xi = 15`` for every variant.
 Default horizon T = 200 steps of dt = 0.01 s (3 chunks of T_h = 64).
@@ -29,11 +30,14 @@ no running e). With T = 200 its optimum enters 5 cm of the target only at t = 18
 and stops in the last steps, so one step late costs 33-106x the optimum: the paper's cost becomes a
 stop-timing test that no policy without a time input passes. The running reach term makes the optimum
 arrive early (t = 20-40) and the velocity weight makes it settle (at rest, ||v|| <= 0.05, from
-t = 63-101, before T - 63 = 137 as Fig. 3's T_a 63 needs); regularizing u around gravity compensation
+t = 45-109, before T - 63 = 137 as Fig. 3's T_a 63 needs); regularizing u around gravity compensation
 (crocoddyl's ``ResidualModelControlGrav``) removes the incentive to drift in the arm's null space
 after arriving, which kept it moving to T. One step late then costs 1.05-1.10x
-(results/tasks/timing.md). T = 200 and the r_init / r_tgt sampling are ours (Fig. 3 needs
-T >= T_h + T_a = 127).
+(results/tasks/timing.md). The reach limit on random targets is ours too (results version 3): at
+targets 0.91-0.93 m from the shoulder, near full extension, the smallest singular value of the
+tool's position Jacobian is 0.04-0.09 (0.15-0.24 elsewhere) and the optimum creeps into the target,
+at rest only from t = 119-162 (6 of 60 instances measured; all others, 0.26-0.82 m, by t <= 119).
+T = 200 and the r_init / r_tgt sampling are ours (Fig. 3 needs T >= T_h + T_a = 127).
 Naive guess ``Interpolate(x0, x_target)``: x_target = (q_ik, 0) with q_ik from damped
 least-squares position IK started at q0; q linearly interpolated, v its constant velocity
 (v_0 = v0), u from RNEA along the interpolation, clipped to the torque limits.
@@ -59,7 +63,8 @@ EE_FRAME = "tool0"
 Q_HOME = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
 P_FIXED = np.array([0.15, 0.65, 0.5])  # m, aligator ur5_reach.py target
 INIT_SPREAD = 0.3  # rad, half-width of the small initial region (r_init = 0)
-TGT_MIN_Z, TGT_MIN_R = 0.1, 0.2  # m, random-target acceptance region
+TGT_MIN_Z, TGT_MIN_R = 0.1, 0.2  # m, random-target acceptance region: above the base plane, off its axis
+TGT_MAX_REACH = 0.85  # m, and at most this far from the shoulder (the arm's reach is 0.95 m)
 # aligator ur5_reach.py (1/2 r^T W r; running weights x dt): running state regularization to the
 # neutral configuration and control regularization; terminal end-effector error, tool twist, state.
 # Ours (results version 2, see the module docstring): the running end-effector term W_EE, the running
@@ -98,10 +103,13 @@ class Ur5Task(StartGoalTask):
         self.u_ub = self.model.effortLimit.copy()
         self.u_lb = -self.u_ub
         self.ee = self.model.getFrameId(EE_FRAME)
+        self.shoulder = self.model.jointPlacements[1].translation.copy()  # on the pan axis, (0, 0, 0.089)
 
     def params(self) -> dict:
         return {**super().params(), "r_init": self.r_init, "r_tgt": self.r_tgt, "ee_frame": EE_FRAME,
                 "init_spread": INIT_SPREAD, "p_fixed": P_FIXED.tolist(),
+                "target_region": {"min_z": TGT_MIN_Z, "min_axis_distance": TGT_MIN_R,
+                                  "max_shoulder_distance": TGT_MAX_REACH},
                 "weights": {"q": W_Q, "v": W_V, "u": W_U, "u_ref": "gravity", "ee": W_EE, "ee_T": W_EE_T,
                             "twist_T": W_TWIST_T, "x_T": W_X_T}}
 
@@ -115,7 +123,8 @@ class Ur5Task(StartGoalTask):
         """A reachable target (3,): tool0 of a random configuration, above the base plane."""
         for _ in range(1000):
             p = self.ee_position_np(rng.uniform(-np.pi, np.pi, self.nq))
-            if p[2] >= TGT_MIN_Z and np.hypot(p[0], p[1]) >= TGT_MIN_R:
+            if (p[2] >= TGT_MIN_Z and np.hypot(p[0], p[1]) >= TGT_MIN_R
+                    and np.linalg.norm(p - self.shoulder) <= TGT_MAX_REACH):
                 return p
         raise SdpError("could not sample a UR5 target")  # pragma: no cover - probability ~0
 
