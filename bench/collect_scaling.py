@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.data.collect import CollectConfig, collect, warm_solver
+from sdp_cli.collect import CollectConfig, collect, warm_solver
 from sdp_cli.executor import make_executor
 
 

@@ -20,7 +20,7 @@ import torch
 
 
 def _train_default(task: str, root: Path) -> Path:
-    from sdp_cli.data.collect import CollectConfig, collect
+    from sdp_cli.collect import CollectConfig, collect
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.train import train
 

@@ -42,7 +42,7 @@ PAPER = {"double_pendulum": "mean cost 50.1, 896 iterations, 80% not converged (
 
 
 def one(task_name: str, baseline: str, n: int) -> dict:
-    from sdp_cli.data.collect import sample_xi
+    from sdp_cli.collect import sample_xi
     from sdp_cli.tasks import get_task
 
     task = get_task(task_name)

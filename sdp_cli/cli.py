@@ -76,7 +76,7 @@ def collect_cmd(
     progress: ProgressOpt = True,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
-    from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
+    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.progress import collect_progress, status
 
     set_threads(threads)

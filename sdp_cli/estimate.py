@@ -35,21 +35,12 @@ import torch
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.registry import get_method
 
-#: seconds per solve from the naive guess, (fatrop multiple shooting, ipopt single shooting):
-#: means of results/tasks/TO_alone.md; quadrotor-1/-3 use quadrotor-9's (an upper bound)
-TO_REFERENCE_S = {"pendulum": (0.002, 0.18), "double_pendulum": (0.010, 0.155), "ur5": (0.108, 50.3),
-                  "quadrotor-0": (0.046, 112.0), "quadrotor-1": (0.63, 120.0), "quadrotor-3": (0.63, 120.0),
-                  "quadrotor-9": (0.63, 120.0), "quadrotor": (0.63, 120.0)}
-
 
 def to_reference(task: str) -> tuple[float, float]:
-    """Reference (multiple shooting, single shooting) seconds per solve of ``task``."""
-    if task in TO_REFERENCE_S:
-        return TO_REFERENCE_S[task]
-    for prefix in ("ur5", "quadrotor"):
-        if task.startswith(prefix):
-            return TO_REFERENCE_S[prefix]
-    return TO_REFERENCE_S["double_pendulum"]
+    """Reference (multiple shooting, single shooting) seconds per solve of ``task`` (:attr:`Task.reference_solve_s`)."""
+    from sdp_cli.tasks import get_task
+
+    return tuple(get_task(task).reference_solve_s)
 
 
 @dataclass

@@ -236,7 +236,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
              progress: bool = False) -> pd.DataFrame:
     """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
     ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
-    from sdp_cli.data.collect import CollectConfig, collect, policy_fingerprint
+    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.evaluate import is_timing_column
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.train import train

@@ -10,9 +10,9 @@ import os
 
 import numpy as np
 
-from sdp_cli.data import collect as collect_mod
+from sdp_cli import collect as collect_mod
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.data.collect import solve_index
+from sdp_cli.collect import solve_index
 
 BAD = 1  # the index whose job raises in the failure tests
 

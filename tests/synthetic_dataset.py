@@ -13,7 +13,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from sdp_cli.data.artifacts import save_npz
 from sdp_cli.tasks import get_task
@@ -93,14 +92,3 @@ def write_dataset(path, task_name="pendulum", n_traj=4, seed=0, T=40, drop=(), u
     return save_npz(Path(path), arrays, kind="dataset",
                     config={"task": task_name, "seed": seed, "n_traj": n_traj, "synthetic": True},
                     task=task_name, task_options={"T": T}, task_params=task.params(), dims=dims)
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The learning tests use tiny networks: one torch thread avoids oversubscription on shared CPUs."""
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)

@@ -20,10 +20,10 @@ import pytest
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
-from sdp_cli.data.collect import CollectConfig, collect
+from sdp_cli.collect import CollectConfig, collect
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.train import train
-from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
+from synthetic_dataset import write_dataset
 
 runner = CliRunner()
 TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "batch_size": 32, "T_h": 8}

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.policy.checkpoint import load_checkpoint
-from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
+from synthetic_dataset import write_dataset
 
 runner = CliRunner()
 VOLATILE = {"provenance"}

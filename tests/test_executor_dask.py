@@ -23,7 +23,7 @@ import executor_jobs
 from executor_jobs import BAD, assert_same_dataset, flaky_jobs
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz, save_npz
-from sdp_cli.data.collect import CollectConfig, collect, sample_xi
+from sdp_cli.collect import CollectConfig, collect, sample_xi
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import make_executor
 from sdp_cli.refine import refine

@@ -79,5 +79,5 @@ def test_find_cycle_finds_one():
 
 def test_no_import_cycles():
     graph = import_graph()
-    assert "sdp_cli.solve_jobs" in graph["sdp_cli.data.collect"] and "sdp_cli.solve_jobs" in graph["sdp_cli.refine"]
+    assert "sdp_cli.solve_jobs" in graph["sdp_cli.collect"] and "sdp_cli.solve_jobs" in graph["sdp_cli.refine"]
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))

@@ -16,7 +16,7 @@ from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.policy import get_method, load_policy, method_names, register_method
 from sdp_cli.policy.families import DiffusionFamily, MLPFamily
 from sdp_cli.policy.registry import _REGISTRY
-from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
+from synthetic_dataset import write_dataset
 
 runner = CliRunner()
 

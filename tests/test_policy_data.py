@@ -10,7 +10,7 @@ from sdp_cli.data.artifacts import load_npz
 from sdp_cli.data.chunks import ChunkDataset, PairDataset, fit_normalizer, load_dataset
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks.pendulum import PendulumTask
-from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
+from synthetic_dataset import write_dataset
 
 T, T_H = 30, 8
 

@@ -7,7 +7,6 @@ import torch
 from torch import nn
 
 from sdp_cli.losses.sobolev import random_unit, sobolev_input_projection, sobolev_output_projection
-from synthetic_dataset import one_torch_thread  # noqa: F401 (autouse fixture)
 
 B, D_IN, OUT = 5, 3, (4, 2)
 

@@ -9,7 +9,6 @@ from torch.func import jvp
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.diffusion import DiffusionNet, diffusion_loss, make_scheduler, sample_chunk
 from sdp_cli.policy.unet import ConditionalUnet1D
-from synthetic_dataset import one_torch_thread  # noqa: F401 (autouse fixture)
 
 
 def test_default_unet_size_and_shapes():

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.data.collect import CollectConfig, collect
+from sdp_cli.collect import CollectConfig, collect
 from sdp_cli.errors import SdpError
 from sdp_cli.policy import load_policy
 from sdp_cli.policy.config import TrainConfig

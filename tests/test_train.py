@@ -16,7 +16,7 @@ from sdp_cli.policy import DiffusionPolicy, MLPPolicy, load_policy
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.train import train
-from synthetic_dataset import one_torch_thread, write_dataset  # noqa: F401 (autouse fixture)
+from synthetic_dataset import write_dataset
 
 T = 30
 TINY = dict(T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=32, mlp_hidden=[32, 32],

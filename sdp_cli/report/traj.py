@@ -80,7 +80,7 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
         runs[m] = (r, f, rmeta, name)
     r0, f0, meta0, _ = next(iter(runs.values()))
     task = get_task(task_name, **(meta0.get("task_options") or {}))
-    top = task.nq > 2
+    top = task.report_view == "top"
     ix, iy = (0, 1) if top else (1, 2)
     plt = pyplot()
     n_show = min(n_show, len(r0["X"]))

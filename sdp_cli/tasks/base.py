@@ -235,6 +235,12 @@ class Task(PolicyConventions, ABC):
 
     #: goal distance under which a rollout counts as having reached the goal (m)
     goal_tolerance: float = 0.05
+    #: how the report draws this task's trajectories: "distance" (the goal distance over time) or "top"
+    #: (the path seen from above, :meth:`path_points` x-y, with the columns)
+    report_view: str = "distance"
+    #: seconds per TO solve from the naive guess, (fatrop multiple shooting, IPOPT single shooting), used
+    #: by ``sdp pipeline --estimate`` (means of results/tasks/TO_alone.md for the built-in tasks)
+    reference_solve_s: tuple[float, float] = (0.010, 0.155)
 
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """3D points of a trajectory for plots: (T+1, nx) -> (T+1, 3). Default: the last frame."""
@@ -319,6 +325,8 @@ def check_task_params(task: Task, stored: dict | None, what: str) -> None:
 
 class StartGoalTask(Task):
     """A task whose instances are ``xi = [x0 (nx), goal position (3)]`` (UR5 reach, quadrotor)."""
+
+    report_view = "top"
 
     def initial_state(self, xi: np.ndarray) -> np.ndarray:
         return np.asarray(xi, dtype=float)[: self.nx].copy()

@@ -113,7 +113,7 @@ def action_rows(task: Task, action: str) -> list[dict]:
 def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: int = 20) -> dict:
     """``n_traj`` converged TO optima from the naive guess (instances ``(seed, i)`` as ``sdp collect``
     draws them): ``{"X", "U", "xi", "K", "Phi"}``."""
-    from sdp_cli.data.collect import sample_xi
+    from sdp_cli.solve_jobs import sample_xi
     from sdp_cli.trajopt import get_solver
 
     solver = get_solver(task)

@@ -151,6 +151,8 @@ class QuadrotorTask(StartGoalTask):
         self.n_obstacles = int(n_obstacles)
         self.arrival = bool(arrival)   # False: aligator's weights alone (results version 1; the solver tests' scenes)
         self.name = name or f"quadrotor-{self.n_obstacles}"
+        # results/tasks/TO_alone.md; with columns, quadrotor-9's times (an upper bound)
+        self.reference_solve_s = (0.046, 112.0) if self.n_obstacles == 0 else (0.63, 120.0)
         self.T, self.dt = int(T), float(dt)
         self.model = load_model("hector")
         super().__init__()
