@@ -35,7 +35,7 @@ import torch
 
 from sdp_cli.losses import sobolev as sob
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.policy.diffusion import DiffusionNet, diffusion_loss, make_scheduler
+from sdp_cli.policy.diffusion import DiffusionUnetPolicy
 
 
 def synthetic_batch(B, T_h, A=1, ndx=2, n_o=3, n_xi=2, seed=0):
@@ -65,9 +65,8 @@ def make_step(mode, batch, dims, T_h):
     cfg = TrainConfig(method=method, T_h=T_h, sobolev_mode=sob_mode,
                       sobolev_fraction=0.5 if mode == "sdp-jvp-half" else 1.0)
     torch.manual_seed(0)
-    net = DiffusionNet(cfg, dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"])
+    net = DiffusionUnetPolicy(cfg, dims)
     opt = torch.optim.AdamW(net.parameters(), lr=1e-4)
-    sch = make_scheduler(cfg)
     gen = torch.Generator().manual_seed(0)
     orig = sob.sobolev_input_projection
 
@@ -78,7 +77,7 @@ def make_step(mode, batch, dims, T_h):
         if mode == "sdp-jvp-func":
             sob.sobolev_input_projection = no_manual
         try:
-            loss, _ = diffusion_loss(net, sch, batch, cfg, gen, sobolev=cfg.sobolev)
+            loss, _ = net.compute_loss(batch, gen)
         finally:
             sob.sobolev_input_projection = orig
         opt.zero_grad(set_to_none=True)

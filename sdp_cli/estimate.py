@@ -72,7 +72,7 @@ def training_stages(runs: dict) -> list[TrainStage]:
         for k in range(cfg.n_algo):
             st = TrainStage(run, k, cfg.task, cfg.method, int(cfg.horizon), cfg.n_traj_at(k), int(cfg.epochs),
                             int(o.get("batch_size", 256)), o.get("action"))
-            if get_method(st.method).family.chunked:
+            if get_method(st.method).chunked:
                 st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
             else:
                 st.E = st.n_traj * task.T
@@ -85,7 +85,7 @@ def training_stages(runs: dict) -> list[TrainStage]:
 def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Generator, device) -> dict:
     r = lambda *s: (torch.rand(*s, generator=gen) * 2 - 1).to(device)
     A, n_o, n_xi, ndx = dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"]
-    if get_method(method).family.chunked:
+    if get_method(method).chunked:
         b = {"tau0": r(B, T_h, A), "obs": r(B, 1, n_o), "obs_jac": r(B, 1, n_o, ndx), "xi": r(B, n_xi),
              "jac": r(B, T_h, A, ndx)}
         b["a_hist"] = b["tau0"][:, :1]
@@ -99,34 +99,24 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
     from diffusers.training_utils import EMAModel
 
-    from sdp_cli.policy.checkpoint import build_net
     from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
-    from sdp_cli.train import make_loss, policy_dims
+    from sdp_cli.train import train_step
 
     task = get_task(task_name)
     cfg = TrainConfig(method=method, T_h=T_h, batch_size=B, action=action)
-    dims = policy_dims(cfg, task, action or task.action)
+    dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     torch.manual_seed(0)
-    net = build_net(cfg, dims).to(device)
-    sched = None
-    if cfg.is_diffusion:
-        from sdp_cli.policy.diffusion import make_scheduler
-        sched = make_scheduler(cfg)
-    loss_fn = make_loss(cfg, sched)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr)
-    ema = EMAModel(net.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, power=cfg.ema_power)
+    policy = make_policy(cfg, dims).to(device)
+    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
+    ema = EMAModel(policy.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, power=cfg.ema_power)
     gen = torch.Generator().manual_seed(0)
     batch = _synthetic_batch(method, dims, T_h, B, gen, device)
     g = torch.Generator(device=device).manual_seed(0)
 
-    def step():
-        loss, _ = loss_fn(net, batch, g)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-        opt.step()
-        ema.step(net.parameters())
+    def step():   # the trainer's step (without its LR schedule: a scalar update)
+        loss, _, _ = train_step(policy, batch, opt, None, ema, g, cfg.grad_clip)
         loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
     step()
@@ -207,7 +197,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
                 if cfg.eval_refine:
                     r["to_s"] += 2 * cfg.n_test * ms + (2 * cfg.n_test * ss if cfg.single_shooting else 0.0)
                 t_a = t_a or max(1, st.T_h - 1)
-                calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).family.chunked else task.T
+                calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).chunked else task.T
                 r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))
     for d in devices:

@@ -34,9 +34,9 @@ from sdp_cli.data.chunks import fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, portable_path, save_timing
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
-from sdp_cli.policy.checkpoint import (CHECKPOINT_NAME, build_net, file_sha256, load_checkpoint,
-                                       save_checkpoint)
+from sdp_cli.policy.checkpoint import CHECKPOINT_NAME, file_sha256, load_checkpoint, save_checkpoint
 from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.registry import make_policy
 
 ARCH_FIELDS = ("T_h", "T_o", "K", "down_dims", "kernel_size", "n_groups", "step_embed_dim", "clip_sample",
                "action", "mlp_hidden")
@@ -56,43 +56,61 @@ def resolve_device(device: str) -> torch.device:
     return dev
 
 
-def make_loss(cfg: TrainConfig, scheduler=None, sobolev_scale: float = 1.0) -> Callable:
-    """``loss_fn(net, batch, generator) -> (loss, parts)`` for ``cfg.method`` (its family's loss)."""
-    return cfg.family.loss(cfg, scheduler, cfg.sobolev, sobolev_scale)
+class Diverged(SdpError):
+    """The loss of a training step is not finite (the trainer names the step)."""
+
+    def __init__(self, loss: float):
+        super().__init__(f"training diverged (loss {loss})")
+        self.loss = loss
 
 
-def sobolev_scale_of(cfg: TrainConfig, tensors: dict) -> float:
-    """The Sobolev term's factor on this dataset: :func:`balance_scale` (``cfg.sobolev_balance``) or 1."""
+def train_step(policy, batch: dict, opt, lr_scheduler, ema, generator: torch.Generator | None, grad_clip: float):
+    """One optimisation step, the same in the trainer and in the estimate's timing: loss
+    (:meth:`Policy.compute_loss`), backward, gradient-norm clipping, AdamW, LR schedule (``None``: none),
+    EMA. Returns ``(loss, parts, grad_norm)``; raises :class:`Diverged` before touching the weights when the
+    loss is not finite."""
+    loss, parts = policy.compute_loss(batch, generator)
+    if not torch.isfinite(loss):
+        raise Diverged(loss.item())
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    gnorm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip)
+    opt.step()
+    if lr_scheduler is not None:
+        lr_scheduler.step()
+    ema.step(policy.parameters())
+    return loss, parts, gnorm
+
+
+def sobolev_scale_of(policy, tensors: dict) -> float:
+    """The Sobolev term's factor on this dataset: :func:`balance_scale` (``sobolev_balance``) or 1."""
+    cfg = policy.config
     if not (cfg.sobolev and cfg.sobolev_balance):
         return 1.0
     from sdp_cli.losses.sobolev import balance_scale
 
-    return balance_scale(*cfg.family.balance_terms(cfg, tensors))
-
-
-def policy_dims(cfg: TrainConfig, task, action: str) -> dict:
-    """Network sizes: action, observation (``(obs(x), u_prev)`` for diffusion, ``obs(x)`` for the MLPs),
-    ``xi`` and state tangent."""
-    return cfg.family.dims(cfg, task, action)
+    return balance_scale(*policy.balance_terms(tensors))
 
 
 def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen: bool = False):
-    """``(net, tensors, epoch_size, action)``: network with a fitted (or given) normalizer;
-    ``widen``: the given normalizer's ranges are extended to cover this dataset (``--init``)."""
-    with_jac = cfg.sobolev
-    ds, action = cfg.family.dataset(cfg, task, arrays, with_jac)
-    dims = policy_dims(cfg, task, action)
-    net = build_net(cfg, dims)
+    """``(policy, tensors, epoch_size, action, dims)``: the method's policy object with a fitted (or given)
+    normalizer and its Sobolev scale set; ``widen``: the given normalizer's ranges are extended to cover this
+    dataset (``--init``)."""
+    cls = cfg.policy_class
+    ds, action = cls.make_dataset(cfg, task, arrays, cfg.sobolev)
+    dims = cls.dims_for(cfg, task, action)
+    policy = make_policy(cfg, dims)
     norm = fit_normalizer(task, arrays, action) if normalizer is None or widen else normalizer
     if normalizer is not None and widen:
         norm = normalizer.union(norm)
-    net.normalizer.load_state_dict(norm.state_dict())
-    tensors = ds.tensors(net.normalizer, device)
+    policy.normalizer.load_state_dict(norm.state_dict())
+    tensors = ds.tensors(policy.normalizer, device)
     if cfg.sobolev and cfg.sobolev_cap is not None:
         from sdp_cli.losses.sobolev import capped_weights
 
         tensors["sob_weight"] = capped_weights(tensors["jac"][:, cfg.T_o:], cfg.sobolev_cap)
-    return net.to(device), tensors, ds.epoch_size(), action, dims
+    policy.sobolev_scale = sobolev_scale_of(policy, tensors)
+    return policy.to(device), tensors, ds.epoch_size(), action, dims
 
 
 def _metrics_bytes(rows: list[dict]) -> bytes:
@@ -160,31 +178,31 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     torch.manual_seed(cfg.seed)
     norm = None
     if init_ck is not None or prev is not None:
-        from sdp_cli.policy.checkpoint import net_from_checkpoint
-        norm = net_from_checkpoint(prev or init_ck).normalizer
+        from sdp_cli.policy.checkpoint import policy_from_checkpoint
+        norm = policy_from_checkpoint(prev or init_ck).normalizer
     # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
-    net, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
-    fitted_norm = {k: v.clone() for k, v in net.normalizer.state_dict().items()}
-    sob_scale = sobolev_scale_of(cfg, tensors)
+    policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
+    fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
+    sob_scale = policy.sobolev_scale
     n_samples = next(iter(tensors.values())).shape[0]
     steps_per_epoch = epoch_steps(E, cfg.batch_size)
     total = cfg.epochs * steps_per_epoch
     warmup = cfg.warmup_steps if cfg.warmup_steps is not None else min(500, total // 10)
 
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
+    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
                             foreach=True)   # one fused pass over the ~200 tensors (bitwise the same result)
     sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
     gen = torch.Generator().manual_seed(cfg.seed)   # CPU: the same draws on CPU and GPU
     if init_ck is not None:
-        net.load_state_dict(init_ck["ema_model"] or init_ck["model"])
-    ema = EMAModel(net.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
+        policy.load_state_dict(init_ck["ema_model"] or init_ck["model"])
+    ema = EMAModel(policy.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
                    power=cfg.ema_power)
     if init_ck is not None:
-        net.load_state_dict(init_ck["model"])
-        net.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's
+        policy.load_state_dict(init_ck["model"])
+        policy.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's
     step, wall0, rows = 0, 0.0, []
     if prev is not None:
-        net.load_state_dict(prev["model"])
+        policy.load_state_dict(prev["model"])
         ts = prev["train_state"]
         opt.load_state_dict(ts["optimizer"])
         sched.load_state_dict(ts["lr_scheduler"])
@@ -199,8 +217,6 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         wall0 = float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
         rows = _read_metrics(out / "metrics.csv", step)
 
-    scheduler = cfg.family.scheduler(cfg)
-    loss_fn = make_loss(cfg, scheduler, sob_scale)
     created = not out.exists()
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
@@ -213,12 +229,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             "sobolev_scale": sob_scale}
 
     def checkpoint(path: Path, with_state: bool = True):
-        ema.store(net.parameters())
-        ema.copy_to(net.parameters())
-        ema_sd = {k: v.detach().clone().cpu() for k, v in net.state_dict().items()}
-        ema.restore(net.parameters())
+        ema.store(policy.parameters())
+        ema.copy_to(policy.parameters())
+        ema_sd = {k: v.detach().clone().cpu() for k, v in policy.state_dict().items()}
+        ema.restore(policy.parameters())
         payload = {**base, "epoch": step // steps_per_epoch, "step": step, "finished": step >= total,
-                   "model": {k: v.detach().cpu() for k, v in net.state_dict().items()}, "ema_model": ema_sd,
+                   "model": {k: v.detach().cpu() for k, v in policy.state_dict().items()}, "ema_model": ema_sd,
                    "train_state": None}
         if with_state:
             payload["train_state"] = {"optimizer": opt.state_dict(), "lr_scheduler": sched.state_dict(),
@@ -238,7 +254,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                 csv.DictWriter(f, fieldnames=METRIC_FIELDS, extrasaction="ignore").writerows(rows[flushed[0]:])
         flushed[0] = len(rows)
 
-    n_params = sum(p.numel() for p in net.parameters())
+    n_params = sum(p.numel() for p in policy.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
         f"{steps_per_epoch} step(s) of <= {min(cfg.batch_size, E)} (batch size {cfg.batch_size}, drawn without "
         f"replacement); {cfg.epochs} epochs = {total} steps; "
@@ -249,7 +265,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if prev is not None:   # drop rows the killed run logged after its last checkpoint
         atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
     flushed = [len(rows) if prev is not None else 0]
-    net.train()
+    policy.train()
     bar = _progress(progress)
     from sdp_cli.interrupts import deferred
 
@@ -263,16 +279,11 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                     order, order_epoch = epoch_indices(n_samples, E, cfg.seed, epoch).to(dev), epoch
                 idx = order[j * cfg.batch_size:(j + 1) * cfg.batch_size]
                 batch = {k: v[idx] for k, v in tensors.items()}
-                loss, parts = loss_fn(net, batch, gen)
-                if not torch.isfinite(loss):
-                    raise SdpError(f"training diverged at step {step} (loss {loss.item()}); "
-                                   f"try a lower --lr or --alpha-sobolev")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                gnorm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
-                ema.step(net.parameters())
+                try:
+                    loss, parts, gnorm = train_step(policy, batch, opt, sched, ema, gen, cfg.grad_clip)
+                except Diverged as e:
+                    raise SdpError(f"training diverged at step {step} (loss {e.loss}); "
+                                   f"try a lower --lr or --alpha-sobolev") from None
                 step += 1
                 rows.append({"step": step, "epoch": step // steps_per_epoch, "loss": f"{loss.item():.6g}",
                              "dp": f"{parts['dp'].item():.6g}", "sobolev": f"{parts['sobolev'].item():.6g}",

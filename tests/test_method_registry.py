@@ -1,4 +1,4 @@
-"""Adding a method is one family class and one registration (sdp_cli.policy.registry): a toy method
+"""Adding a method is one policy class and one registration (sdp_cli.policy.registry): a toy family
 (a linear policy, the MLP family's data and loss) trains, checkpoints, loads and rolls out through sdp's
 own CLI, and every built-in method is found through the same registry."""
 
@@ -12,46 +12,38 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.policy import get_method, load_policy, method_names, register_method
-from sdp_cli.policy.families import DiffusionFamily, MLPFamily
+from sdp_cli.policy.diffusion import DiffusionUnetPolicy
+from sdp_cli.policy.mlp import MLPPolicy
 from sdp_cli.policy.registry import _REGISTRY
 from synthetic_dataset import write_dataset
 
 runner = CliRunner()
 
 
-class LinearNet(nn.Module):
-    """``u_n (B, nu) = W [obs_n, xi_n] + b``, with the normalizer every policy network carries."""
+class LinearPolicy(MLPPolicy):
+    """``u_n (B, nu) = W [obs_n, xi_n] + b``: the MLP family's samples, loss and ``act``, a linear network."""
 
-    def __init__(self, dims: dict):
-        super().__init__()
-        self.normalizer = Normalizer(dims["n_action"], dims["n_obs"] + dims["n_action"], dims["n_xi"], dims["ndx"])
-        self.lin = nn.Linear(dims["n_obs"] + dims["n_xi"], dims["n_action"])
+    def build_network(self):
+        self.lin = nn.Linear(self.dims["n_obs"] + self.dims["n_xi"], self.dims["n_action"])
 
     def forward(self, obs_n, xi_n):
         return self.lin(torch.cat([obs_n, xi_n], dim=-1))
 
 
-class LinearFamily(MLPFamily):
-    """The MLP family's samples, loss and runtime policy, with a linear network."""
-
-    def build_net(self, cfg, dims):
-        return LinearNet(dims)
-
-
 @pytest.fixture()
 def toy_method():
-    register_method("toy_linear", LinearFamily(), sobolev=True, description="linear feedback, Sobolev loss")
+    register_method("toy_linear", LinearPolicy, sobolev=True, description="linear feedback, Sobolev loss")
     yield "toy_linear"
     _REGISTRY.pop("toy_linear", None)
 
 
 def test_builtin_methods_come_from_the_registry():
     assert set(method_names()) >= {"sdp", "dp", "pddp", "pddp_s"}
-    assert isinstance(get_method("sdp").family, DiffusionFamily) and get_method("sdp").sobolev
-    assert isinstance(get_method("dp").family, DiffusionFamily) and not get_method("dp").sobolev
-    assert isinstance(get_method("pddp_s").family, MLPFamily) and get_method("pddp_s").sobolev
+    assert get_method("sdp").policy_class is DiffusionUnetPolicy and get_method("sdp").sobolev
+    assert get_method("dp").policy_class is DiffusionUnetPolicy and not get_method("dp").sobolev
+    assert get_method("pddp_s").policy_class is MLPPolicy and get_method("pddp_s").sobolev
+    assert get_method("sdp").chunked and not get_method("pddp").chunked
     assert "toy_linear" not in method_names()
 
 
@@ -61,7 +53,8 @@ def test_a_registered_toy_method_trains_loads_and_rolls_out(toy_method, tmp_path
                             "--device", "cpu", "--no-progress", "--out", str(tmp_path / "run")])
     assert r.exit_code == 0, r.output
     pol = load_policy(tmp_path / "run")
-    assert pol.method == toy_method and isinstance(pol.net, LinearNet) and not pol.is_diffusion
+    assert pol.method == toy_method and isinstance(pol, LinearPolicy) and not pol.chunked
+    assert set(pol.state_dict()) == {"lin.weight", "lin.bias"} | {k for k in pol.state_dict() if k.startswith("normalizer.")}
     x = np.stack([pol.task.initial_state(pol.task.sample_xi(np.random.default_rng(i))) for i in range(3)])
     xi = np.stack([pol.task.sample_xi(np.random.default_rng(i)) for i in range(3)])
     assert pol.act(x, xi).shape == (3, pol.task.nu)

@@ -7,7 +7,12 @@ import torch
 from torch.func import jvp
 
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.policy.diffusion import DiffusionNet, diffusion_loss, make_scheduler, sample_chunk
+from sdp_cli.policy.diffusion import DiffusionUnetPolicy, make_scheduler
+
+
+def make_policy(cfg, A, n_obs, n_xi, ndx):
+    """The diffusion policy object with these sizes."""
+    return DiffusionUnetPolicy(cfg, {"n_action": A, "n_obs": n_obs, "n_xi": n_xi, "ndx": ndx})
 from sdp_cli.policy.unet import ConditionalUnet1D
 
 
@@ -57,11 +62,10 @@ def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state, path):
     cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_mode="jvp",
                       sobolev_path=path)
     A = 2 if state else 1
-    net = DiffusionNet(cfg, A, 3, 2, 2)
-    sch = make_scheduler(cfg)
+    net = make_policy(cfg, A, 3, 2, 2)
     batch = _batch(A=A, state=state)
     import sdp_cli.losses.sobolev as sob
-    l1, p1 = diffusion_loss(net, sch, batch, cfg, torch.Generator().manual_seed(0), sobolev=True)
+    l1, p1 = net.compute_loss(batch, torch.Generator().manual_seed(0))
     orig = sob.sobolev_input_projection
     sob_calls = {}
 
@@ -70,7 +74,7 @@ def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state, path):
         return orig(f, d_in, J, n_proj, generator, None)
     sob.sobolev_input_projection = no_manual
     try:
-        l2, p2 = diffusion_loss(net, sch, batch, cfg, torch.Generator().manual_seed(0), sobolev=True)
+        l2, p2 = net.compute_loss(batch, torch.Generator().manual_seed(0))
     finally:
         sob.sobolev_input_projection = orig
     assert sob_calls
@@ -99,11 +103,13 @@ def test_total_path_is_the_derivative_through_the_noisy_chunk():
         for path in ("total", "cond"):
             cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8,
                               sobolev_path=path)
+            policy = make_policy(cfg, 1, 3, 2, 2).double()   # this path's config, the same weights
             if net is None:
-                net = DiffusionNet(cfg, 1, 3, 2, 2).double()
+                net = policy
+            policy.load_state_dict(net.state_dict())
             sch = make_scheduler(cfg)
             b = {k: v.double() for k, v in _batch(B=3).items()}
-            diffusion_loss(net, sch, b, cfg, torch.Generator().manual_seed(5), sobolev=True)
+            policy.compute_loss(b, torch.Generator().manual_seed(5))
             J_f = torch.autograd.functional.jacobian(got["f"], torch.zeros(3, 2, dtype=torch.float64))
             J_f = torch.stack([J_f[i, :, :, i] for i in range(3)])           # (B, T_h - 1, A, ndx)
             w = torch.tensor([[0.6, -0.8]] * 3, dtype=torch.float64)
@@ -146,13 +152,12 @@ def test_balance_scale_equalizes_a_zero_predictors_terms_and_ignores_state_units
 def test_inpainting_masks_history_rows():
     """Changing the target of the inpainted row changes neither loss term."""
     cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
-    net = DiffusionNet(cfg, 1, 3, 2, 2)
-    sch = make_scheduler(cfg)
+    net = make_policy(cfg, 1, 3, 2, 2)
     b = _batch()
-    l1, _ = diffusion_loss(net, sch, b, cfg, torch.Generator().manual_seed(0), sobolev=True)
+    l1, _ = net.compute_loss(b, torch.Generator().manual_seed(0))
     b2 = dict(b, jac=b["jac"].clone())
     b2["jac"][:, 0] += 5.0
-    l2, _ = diffusion_loss(net, sch, b2, cfg, torch.Generator().manual_seed(0), sobolev=True)
+    l2, _ = net.compute_loss(b2, torch.Generator().manual_seed(0))
     torch.testing.assert_close(l1, l2)
 
 
@@ -164,10 +169,9 @@ def test_scheduler_and_sampling():
     # add_noise uses the cumulative alpha-bar: tau_k = sqrt(abar) tau_0 + sqrt(1 - abar) eps
     x0, eps, k = torch.ones(1, 8, 1), torch.zeros(1, 8, 1), torch.tensor([2])
     torch.testing.assert_close(sch.add_noise(x0, eps, k), x0 * sch.alphas_cumprod[2].sqrt())
-    net = DiffusionNet(cfg, 1, 3, 2, 2).eval()
+    net = make_policy(cfg, 1, 3, 2, 2).eval()
     a_hist = torch.full((3, 1, 1), 0.3)
-    out = sample_chunk(net, sch, torch.zeros(3, 2), torch.zeros(3, 1, 3), a_hist, 8,
-                       generator=torch.Generator().manual_seed(0))
+    out = net.sample(torch.zeros(3, 2), torch.zeros(3, 1, 3), a_hist, generator=torch.Generator().manual_seed(0))
     assert out.shape == (3, 8, 1)
     torch.testing.assert_close(out[:, :1], a_hist)
 
@@ -216,21 +220,8 @@ def test_forward_jvp_on_a_sub_batch():
     for p, a, b in zip(net.parameters(), g1, g2):
         torch.testing.assert_close(torch.zeros_like(p) if a is None else a, torch.zeros_like(p) if b is None else b)
     cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_fraction=0.5)
-    loss, parts = diffusion_loss(DiffusionNet(cfg, 1, 3, 2, 2), make_scheduler(cfg), _batch(), cfg,
-                                 torch.Generator().manual_seed(0), sobolev=True)
+    loss, parts = make_policy(cfg, 1, 3, 2, 2).compute_loss(_batch(), torch.Generator().manual_seed(0))
     assert torch.isfinite(loss) and parts["sobolev"] > 0
-
-
-class _Recorder(torch.nn.Module):
-    """Wraps a DiffusionNet and records the diffusion index of every call."""
-
-    def __init__(self, net):
-        super().__init__()
-        self.net, self.cfg, self.calls = net, net.cfg, []
-
-    def forward(self, tau, k, xi, obs):
-        self.calls.append(int(k[0]))
-        return self.net(tau, k, xi, obs)
 
 
 @pytest.mark.parametrize("k_rollout", [1, 2, 3, 4, 5])
@@ -241,15 +232,17 @@ def test_k_rollout_chain_starts_from_pure_noise(k_rollout):
     from sdp_cli.policy.diffusion import rollout_timesteps
 
     cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
-    sch = make_scheduler(cfg)
-    rec = _Recorder(DiffusionNet(cfg, 1, 3, 2, 2).eval())
+    policy = make_policy(cfg, 1, 3, 2, 2).eval()
+    calls = []
+    policy.register_forward_pre_hook(lambda m, args: calls.append(int(args[1][0])))   # the diffusion index
+    sch = policy.noise_scheduler
     steps = []
     orig = sch.step
     sch.step = lambda pred, t, tau, **kw: (steps.append((int(t), int(sch.previous_timestep(t)))), orig(pred, t, tau, **kw))[1]
-    sample_chunk(rec, sch, torch.zeros(2, 2), torch.zeros(2, 1, 3), torch.zeros(2, 1, 1), 8, k_rollout,
-                 generator=torch.Generator().manual_seed(0))
+    policy.sample(torch.zeros(2, 2), torch.zeros(2, 1, 3), torch.zeros(2, 1, 1), k_rollout,
+                  generator=torch.Generator().manual_seed(0))
     ts = rollout_timesteps(cfg.K, k_rollout)
-    assert rec.calls == ts and ts[0] == cfg.K - 1 and len(ts) == k_rollout
+    assert calls == ts and ts[0] == cfg.K - 1 and len(ts) == k_rollout
     assert [t for t, _ in steps] == ts
     assert [p for _, p in steps] == ts[1:] + [-1]        # each step goes to the next index, the last to clean
     assert k_rollout == 1 or ts[-1] == 0
@@ -259,9 +252,9 @@ def test_full_chain_is_unchanged_by_explicit_timesteps():
     """k_rollout = K is bit-identical to the chain diffusers builds from set_timesteps(K)."""
     cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
     torch.manual_seed(3)
-    net = DiffusionNet(cfg, 1, 3, 2, 2).eval()
+    net = make_policy(cfg, 1, 3, 2, 2).eval()
     xi, obs, a_hist = torch.randn(3, 2), torch.randn(3, 1, 3), torch.full((3, 1, 1), 0.2)
-    new = sample_chunk(net, make_scheduler(cfg), xi, obs, a_hist, 8, cfg.K, generator=torch.Generator().manual_seed(1))
+    new = net.sample(xi, obs, a_hist, cfg.K, generator=torch.Generator().manual_seed(1))
     sch = make_scheduler(cfg)
     sch.set_timesteps(cfg.K)
     g = torch.Generator().manual_seed(1)

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
-from sdp_cli.policy import DiffusionPolicy, MLPPolicy, load_policy
+from sdp_cli.policy import DiffusionUnetPolicy, MLPPolicy, load_policy
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.train import train
@@ -61,7 +61,7 @@ def test_all_methods_train_and_load(data, tmp_path, method):
     xi = np.tile(data_xi(data["ok"]), (B, 1))
     x = xi.copy()
     if method in ("sdp", "dp"):
-        assert isinstance(pol, DiffusionPolicy)
+        assert isinstance(pol, DiffusionUnetPolicy)
         u_prev = np.full((B, 1), 0.5)
         g = lambda: torch.Generator().manual_seed(3)
         tau = pol.predict_chunk(xi, x, u_prev, generator=g())
@@ -213,17 +213,13 @@ def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypat
     import sdp_cli.train as tr
 
     seen = []
-    orig = tr.make_loss
+    orig = tr.train_step
 
-    def recording(*a, **kw):
-        fn = orig(*a, **kw)
+    def recording(policy, batch, *a, **kw):
+        seen.append(next(iter(batch.values())).clone())
+        return orig(policy, batch, *a, **kw)
 
-        def loss(net, batch, g):
-            seen.append(next(iter(batch.values())).clone())
-            return fn(net, batch, g)
-        return loss
-
-    monkeypatch.setattr(tr, "make_loss", recording)
+    monkeypatch.setattr(tr, "train_step", recording)
     c = cfg(method, epochs=2, batch_size=16)
     path = train(data["ok"], tmp_path / "r", c, device="cpu", progress=False, log=quiet)
     ck = load_checkpoint(path)

@@ -1,12 +1,13 @@
-"""Policies: conditional U-Net + DDPM (SDP, DP) and MLP baselines (PDDP, PDDP+S).
+"""Policies: one object per method family (:class:`~sdp_cli.policy.base.Policy`), found through the
+method registry (:mod:`sdp_cli.policy.registry`): the DDPM U-Net (SDP, DP) and the MLP (PDDP, PDDP+S).
 
 Rollout-side API (everything in physical units, numpy in / numpy out, batched over instances)::
 
     from sdp_cli.policy import load_policy
     pol = load_policy("runs/sdp", device="cpu")   # a run folder or a checkpoint file; EMA weights
-    pol.task, pol.method, pol.action, pol.is_diffusion
+    pol.task, pol.method, pol.action, pol.chunked, pol.config, pol.normalizer
 
-    # diffusion methods (pol.is_diffusion): one reverse DDPM pass, Algorithm 2 lines 3-7
+    # chunked methods (pol.chunked): one reverse DDPM pass, Algorithm 2 lines 3-7
     g = torch.Generator().manual_seed(0)
     tau0 = pol.predict_chunk(xi,        # (B, n_xi)
                              x_hist,    # (B, nx) or (B, T_o, nx): current state x_t
@@ -17,20 +18,21 @@ Rollout-side API (everything in physical units, numpy in / numpy out, batched ov
     #    otherwise they are g(x_{t+1}), ... (pol.task.state_action) and the controls come from
     #    inverse dynamics.
 
-    # MLP methods (not pol.is_diffusion)
+    # one control per state (not pol.chunked)
     u = pol.act(x, xi)                  # (B, nx), (B, n_xi) -> (B, nu)
 
-The observation fed to the network is ``o_t = (task.observation(x_t), u_{t-1})``, normalized
-by the normalizer stored in the checkpoint (:mod:`sdp_cli.data.normalizer`).
+Training side (normalized tensors): ``policy.compute_loss(batch, generator) -> (loss, parts)``, driven by
+:func:`sdp_cli.train.train_step`. The observation fed to the network is ``o_t = (task.observation(x_t),
+u_{t-1})``, normalized by the normalizer stored in the checkpoint (:mod:`sdp_cli.data.normalizer`).
 """
 
-from sdp_cli.policy import families as _families  # noqa: F401 (registers the built-in methods first)
-from sdp_cli.policy.registry import MethodFamily, get_method, method_names, register_method
+from sdp_cli.policy.registry import Method, get_method, make_policy, method_names, register_method
 
-__all__ = ["load_policy", "Policy", "DiffusionPolicy", "MLPPolicy", "TrainConfig", "MethodFamily", "get_method",
-           "method_names", "register_method"]
-_LAZY = {"load_policy": "sdp_cli.policy.api", "Policy": "sdp_cli.policy.api", "DiffusionPolicy": "sdp_cli.policy.api",
-         "MLPPolicy": "sdp_cli.policy.api", "TrainConfig": "sdp_cli.policy.config"}
+__all__ = ["load_policy", "Policy", "DiffusionUnetPolicy", "MLPPolicy", "TrainConfig", "Method", "get_method",
+           "make_policy", "method_names", "register_method"]
+_LAZY = {"load_policy": "sdp_cli.policy.api", "Policy": "sdp_cli.policy.base",
+         "DiffusionUnetPolicy": "sdp_cli.policy.diffusion", "MLPPolicy": "sdp_cli.policy.mlp",
+         "TrainConfig": "sdp_cli.policy.config"}
 
 
 def __getattr__(name):   # torch is imported when a policy is used, not when the registry is read (CLI start-up)

@@ -79,13 +79,11 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     return ck
 
 
-def build_net(cfg: TrainConfig, dims: dict):
-    """A fresh network of ``cfg.method``'s family (:mod:`sdp_cli.policy.registry`)."""
-    return cfg.family.build_net(cfg, dims)
+def policy_from_checkpoint(ck: dict, use_ema: bool = True):
+    """The checkpoint's policy object (:func:`~sdp_cli.policy.registry.make_policy`) with its EMA weights
+    (``use_ema``, when saved) or its raw ones; not bound to a task (:meth:`Policy.bind`)."""
+    from sdp_cli.policy.registry import make_policy
 
-
-def net_from_checkpoint(ck: dict, use_ema: bool = True):
-    cfg = TrainConfig.from_dict(ck["config"])
-    net = build_net(cfg, ck["dims"])
-    net.load_state_dict(ck["ema_model"] if use_ema and ck.get("ema_model") is not None else ck["model"])
-    return net
+    policy = make_policy(TrainConfig.from_dict(ck["config"]), ck["dims"])
+    policy.load_state_dict(ck["ema_model"] if use_ema and ck.get("ema_model") is not None else ck["model"])
+    return policy

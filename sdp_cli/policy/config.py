@@ -110,16 +110,18 @@ class TrainConfig:
         self.save_at = sorted(int(e) for e in self.save_at)
 
     @property
-    def family(self):
-        """The method's family (:mod:`sdp_cli.policy.registry`): data, network, loss, policy."""
+    def policy_class(self):
+        """The method's policy class (:mod:`sdp_cli.policy.registry`): data, network, loss, sampling."""
         from sdp_cli.policy.registry import get_method
 
-        return get_method(self.method).family
+        return get_method(self.method).policy_class
 
     @property
     def is_diffusion(self) -> bool:
         """A chunked (diffusion) method: plans action chunks, Algorithm 2."""
-        return self.family.chunked
+        from sdp_cli.policy.registry import get_method
+
+        return get_method(self.method).chunked
 
     @property
     def sobolev_weight(self) -> float:

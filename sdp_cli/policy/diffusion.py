@@ -1,4 +1,5 @@
-"""DDPM diffusion policy over action chunks: network, training losses (eqs. (2), (6)), sampling.
+"""SDP and DP: the DDPM diffusion policy over action chunks (config, normalizer, U-Net, scheduler),
+with its training loss (eqs. (2), (6)) and sampling (Algorithm 2). Registered as ``sdp`` and ``dp``.
 
 Everything inside works in normalized units (:mod:`sdp_cli.data.normalizer`). The
 scheduler is diffusers' ``DDPMScheduler`` with the squared-cosine schedule
@@ -28,101 +29,18 @@ from diffusers import DDPMScheduler
 from torch import nn
 
 from sdp_cli.data.normalizer import Normalizer
+from sdp_cli.errors import SdpError
 from sdp_cli.losses.sobolev import sobolev_term
+from sdp_cli.policy.base import Policy, as_tensor
 if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
     from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.tasks import Task
 from sdp_cli.policy.unet import ConditionalUnet1D
 
 
 def make_scheduler(cfg: TrainConfig) -> DDPMScheduler:
     return DDPMScheduler(num_train_timesteps=cfg.K, beta_schedule="squaredcos_cap_v2",
                          clip_sample=cfg.clip_sample, prediction_type="sample")
-
-
-class DiffusionNet(nn.Module):
-    """Normalizer + conditional U-Net. ``forward(tau_k, k, xi_n, obs_n) -> tau_0 prediction``.
-
-    Shapes: ``tau_k (B, T_h, A)``, ``k (B,)`` scheduler indices, ``xi_n (B, n_xi)``,
-    ``obs_n (B, T_o, n_o)``; all normalized.
-    """
-
-    def __init__(self, cfg: TrainConfig, n_action: int, n_obs: int, n_xi: int, ndx: int):
-        super().__init__()
-        self.cfg = cfg
-        self.dims = {"n_action": n_action, "n_obs": n_obs, "n_xi": n_xi, "ndx": ndx}
-        self.normalizer = Normalizer(n_action, n_obs, n_xi, ndx)
-        self.unet = ConditionalUnet1D(n_action, n_xi + cfg.T_o * n_obs, cfg.down_dims, cfg.kernel_size,
-                                      cfg.n_groups, cfg.step_embed_dim)
-
-    def forward(self, tau_k, k, xi_n, obs_n):
-        return self.unet(tau_k, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1))
-
-    def forward_jvp(self, tau_k, tau_d, k, xi_n, obs_n, obs_d):
-        """``(y, dy)`` along tangents ``tau_d`` (or None) of ``tau_k`` and ``obs_d`` of ``obs_n``."""
-        cond_d = torch.cat([torch.zeros_like(xi_n[: obs_d.shape[0]]), obs_d.flatten(1)], dim=-1)
-        return self.unet.forward_jvp(tau_k, tau_d, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1), cond_d)
-
-
-def diffusion_loss(net: DiffusionNet, scheduler: DDPMScheduler, batch: dict, cfg: TrainConfig,
-                   generator: torch.Generator | None = None, sobolev: bool = False, sobolev_scale: float = 1.0):
-    """``(loss, {"dp": ..., "sobolev": ...})`` for a batch of normalized chunk tensors.
-
-    ``batch``: ``tau0 (B, T_h, A)``, ``a_hist (B, T_o, A)``, ``obs (B, T_o, n_o)``,
-    ``obs_jac (B, T_o, n_o, ndx)``, ``xi (B, n_xi)``; for Sobolev also ``jac (B, T_h, A, ndx)``
-    and, for state control, ``a_hist_jac (B, T_o, A, ndx)``. The Sobolev term is multiplied by
-    ``sobolev_scale`` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``cfg.alpha_sobolev``.
-    ``cfg.sobolev_path == "total"`` also differentiates through the noisy rows of ``tau_k``
-    (tangent ``sqrt(alpha_bar_k) J`` on rows ``T_o:``); "cond" holds them fixed.
-    """
-    tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
-    B, T_o = tau0.shape[0], cfg.T_o
-    dev = tau0.device
-    gdev = generator.device if generator is not None else dev   # CPU generator: same draws on a GPU
-    noise = torch.randn(tau0.shape, generator=generator, device=gdev).to(dev)
-    k = torch.randint(0, cfg.K, (B,), generator=generator, device=gdev).to(dev)
-    tau_k = scheduler.add_noise(tau0, noise, k)
-    rest = tau_k[:, T_o:]
-    if not sobolev:
-        x = torch.cat([a_hist, rest], dim=1)
-        pred = net(x, k, xi, obs)[:, T_o:]
-        dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-        return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dev)}
-
-    obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
-    # "total": the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k) d tau_0 / dx
-    rest_jac = None
-    if cfg.sobolev_path == "total":
-        sab = scheduler.alphas_cumprod.to(dev)[k].sqrt().to(tau0.dtype)
-        rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
-
-    def f(delta):   # delta (B, ndx) -> predicted tau_0 rows T_o: (B, T_h - T_o, A)
-        o = obs + torch.einsum("btoi,bi->bto", obs_jac, delta)
-        a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
-        r = rest if rest_jac is None else rest + torch.einsum("btai,bi->bta", rest_jac, delta)
-        return net(torch.cat([a, r], dim=1), k, xi, o)[:, T_o:]
-
-    # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
-    n_s = B if cfg.sobolev_mode == "vjp" else max(1, round(cfg.sobolev_fraction * B))
-
-    def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
-        o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
-        tau_d = None
-        if a_hist_jac is not None or rest_jac is not None:
-            a_d = (torch.zeros_like(a_hist[:n_s]) if a_hist_jac is None
-                   else torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w))
-            r_d = (torch.zeros_like(rest[:n_s]) if rest_jac is None
-                   else torch.einsum("btai,bi->bta", rest_jac[:n_s], w))
-            tau_d = torch.cat([a_d, r_d], dim=1)
-        y, yd = net.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
-        return y[:, T_o:], yd[:, T_o:]
-
-    J = batch["jac"][:n_s, T_o:]
-    pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
-    dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-    w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
-    sob = sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
-    loss = dp + cfg.sobolev_weight * sob
-    return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
 
 def rollout_timesteps(K: int, k_rollout: int) -> list[int]:
@@ -141,19 +59,170 @@ def rollout_timesteps(K: int, k_rollout: int) -> list[int]:
     return [int(t) for t in np.round(np.linspace(K - 1, 0, k_rollout))]
 
 
-@torch.no_grad()
-def sample_chunk(net: DiffusionNet, scheduler: DDPMScheduler, xi_n, obs_n, a_hist_n, T_h: int,
-                 k_rollout: int | None = None, generator: torch.Generator | list | None = None):
-    """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``(B, T_h, A)`` with inpainted history."""
-    cfg = net.cfg
-    B, T_o, A = a_hist_n.shape
-    scheduler.set_timesteps(timesteps=rollout_timesteps(cfg.K, k_rollout or cfg.K), device=a_hist_n.device)
-    # a list of generators (one per instance) makes batched and one-by-one sampling identical
-    tau = randn_tensor((B, T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
-    for t in scheduler.timesteps:
+class DiffusionUnetPolicy(Policy):
+    """Conditional 1-D U-Net + DDPM over chunks ``tau (B, T_h, A)``, conditioned on ``o_hist (B, T_o, n_o)``
+    with ``o = (obs(x), u_prev)`` and on ``xi``; history inpainted.
+
+    ``forward(tau_k, k, xi_n, obs_n) -> tau_0`` prediction, shapes ``tau_k (B, T_h, A)``, ``k (B,)``
+    scheduler indices, ``xi_n (B, n_xi)``, ``obs_n (B, T_o, n_o)``; all normalized. State dict:
+    ``normalizer.*``, ``unet.*``.
+    """
+
+    chunked = True
+
+    def __init__(self, config: TrainConfig, dims: dict):
+        super().__init__(config, dims)
+        d = self.dims
+        self.normalizer = Normalizer(d["n_action"], d["n_obs"], d["n_xi"], d["ndx"])
+        self.unet = ConditionalUnet1D(d["n_action"], d["n_xi"] + config.T_o * d["n_obs"], config.down_dims,
+                                      config.kernel_size, config.n_groups, config.step_embed_dim)
+        self.noise_scheduler = make_scheduler(config)
+
+    # ------------------------------------------------------------------ data
+    @classmethod
+    def make_dataset(cls, config, task, arrays, with_jacobians):
+        from sdp_cli.data.chunks import ChunkDataset
+
+        action = config.action or task.action
+        return ChunkDataset(task, arrays, config.T_h, config.T_o, action, with_jacobians=with_jacobians), action
+
+    @classmethod
+    def dims_for(cls, config, task, action):
+        from sdp_cli.data.chunks import task_with_action
+
+        return {"n_action": task_with_action(task, action).n_action, "n_obs": task.n_obs + task.nu,
+                "n_xi": task.n_xi, "ndx": task.ndx}
+
+    def balance_terms(self, tensors):
+        return tensors["tau0"][:, self.config.T_o:], tensors["jac"][:, self.config.T_o:]
+
+    # ------------------------------------------------------------------ network
+    def forward(self, tau_k, k, xi_n, obs_n):
+        return self.unet(tau_k, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1))
+
+    def forward_jvp(self, tau_k, tau_d, k, xi_n, obs_n, obs_d):
+        """``(y, dy)`` along tangents ``tau_d`` (or None) of ``tau_k`` and ``obs_d`` of ``obs_n``."""
+        cond_d = torch.cat([torch.zeros_like(xi_n[: obs_d.shape[0]]), obs_d.flatten(1)], dim=-1)
+        return self.unet.forward_jvp(tau_k, tau_d, k, torch.cat([xi_n, obs_n.flatten(1)], dim=-1), cond_d)
+
+    # ------------------------------------------------------------------ training
+    def compute_loss(self, batch: dict, generator: torch.Generator | None = None):
+        """``(loss, {"dp": ..., "sobolev": ...})`` for a batch of normalized chunk tensors.
+
+        ``batch``: ``tau0 (B, T_h, A)``, ``a_hist (B, T_o, A)``, ``obs (B, T_o, n_o)``,
+        ``obs_jac (B, T_o, n_o, ndx)``, ``xi (B, n_xi)``; for Sobolev (``sdp``) also ``jac (B, T_h, A, ndx)``
+        and, for state control, ``a_hist_jac (B, T_o, A, ndx)``. The Sobolev term is multiplied by
+        :attr:`sobolev_scale` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``alpha_sobolev``.
+        ``sobolev_path == "total"`` also differentiates through the noisy rows of ``tau_k`` (tangent
+        ``sqrt(alpha_bar_k) J`` on rows ``T_o:``); "cond" holds them fixed.
+        """
+        cfg, scheduler = self.config, self.noise_scheduler
+        tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
+        B, T_o = tau0.shape[0], cfg.T_o
+        dev = tau0.device
+        gdev = generator.device if generator is not None else dev   # CPU generator: same draws on a GPU
+        noise = torch.randn(tau0.shape, generator=generator, device=gdev).to(dev)
+        k = torch.randint(0, cfg.K, (B,), generator=generator, device=gdev).to(dev)
+        tau_k = scheduler.add_noise(tau0, noise, k)
+        rest = tau_k[:, T_o:]
+        if not cfg.sobolev:
+            x = torch.cat([a_hist, rest], dim=1)
+            pred = self(x, k, xi, obs)[:, T_o:]
+            dp = ((pred - tau0[:, T_o:]) ** 2).mean()
+            return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dev)}
+
+        obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
+        # "total": the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k) d tau_0 / dx
+        rest_jac = None
+        if cfg.sobolev_path == "total":
+            sab = scheduler.alphas_cumprod.to(dev)[k].sqrt().to(tau0.dtype)
+            rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
+
+        def f(delta):   # delta (B, ndx) -> predicted tau_0 rows T_o: (B, T_h - T_o, A)
+            o = obs + torch.einsum("btoi,bi->bto", obs_jac, delta)
+            a = a_hist if a_hist_jac is None else a_hist + torch.einsum("btai,bi->bta", a_hist_jac, delta)
+            r = rest if rest_jac is None else rest + torch.einsum("btai,bi->bta", rest_jac, delta)
+            return self(torch.cat([a, r], dim=1), k, xi, o)[:, T_o:]
+
+        # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
+        n_s = B if cfg.sobolev_mode == "vjp" else max(1, round(cfg.sobolev_fraction * B))
+
+        def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
+            o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
+            tau_d = None
+            if a_hist_jac is not None or rest_jac is not None:
+                a_d = (torch.zeros_like(a_hist[:n_s]) if a_hist_jac is None
+                       else torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w))
+                r_d = (torch.zeros_like(rest[:n_s]) if rest_jac is None
+                       else torch.einsum("btai,bi->bta", rest_jac[:n_s], w))
+                tau_d = torch.cat([a_d, r_d], dim=1)
+            y, yd = self.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
+            return y[:, T_o:], yd[:, T_o:]
+
+        J = batch["jac"][:n_s, T_o:]
+        pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
+        dp = ((pred - tau0[:, T_o:]) ** 2).mean()
+        w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
+        sob = self.sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
+        loss = dp + cfg.sobolev_weight * sob
+        return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
+
+    # ------------------------------------------------------------------ sampling
+    @torch.no_grad()
+    def sample(self, xi_n, obs_n, a_hist_n, k_rollout: int | None = None,
+               generator: torch.Generator | list | None = None):
+        """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``xi_n (B, n_xi)``, ``obs_n (B, T_o, n_o)``,
+        ``a_hist_n (B, T_o, A)`` -> ``(B, T_h, A)`` with the history inpainted. A list of generators (one
+        per instance) makes batched and one-by-one sampling identical."""
+        cfg, scheduler = self.config, self.noise_scheduler
+        B, T_o, A = a_hist_n.shape
+        scheduler.set_timesteps(timesteps=rollout_timesteps(cfg.K, k_rollout or cfg.K), device=a_hist_n.device)
+        tau = randn_tensor((B, cfg.T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
+        for t in scheduler.timesteps:
+            tau[:, :T_o] = a_hist_n
+            kk = torch.full((B,), int(t), device=tau.device, dtype=torch.long)
+            pred = self(tau, kk, xi_n, obs_n)
+            tau = scheduler.step(pred, t, tau, generator=generator).prev_sample
         tau[:, :T_o] = a_hist_n
-        kk = torch.full((B,), int(t), device=tau.device, dtype=torch.long)
-        pred = net(tau, kk, xi_n, obs_n)
-        tau = scheduler.step(pred, t, tau, generator=generator).prev_sample
-    tau[:, :T_o] = a_hist_n
-    return tau
+        return tau
+
+    # ------------------------------------------------------------------ rollout (physical units)
+    @property
+    def T_h(self) -> int:
+        return self.config.T_h
+
+    @property
+    def T_o(self) -> int:
+        return self.config.T_o
+
+    @property
+    def K(self) -> int:
+        return self.config.K
+
+    def a_hist(self, x_hist: np.ndarray, u_hist: np.ndarray) -> np.ndarray:
+        """History actions: ``u_{t-1}`` for torque control, ``g(x_t)`` otherwise: (B, T_o, A)."""
+        if self.action == "u":
+            return np.asarray(u_hist, float)
+        return self.task.state_action(np.asarray(x_hist, float))
+
+    def predict_chunk(self, xi, x_hist, u_hist, generator: torch.Generator | None = None,
+                      k_rollout: int | None = None) -> np.ndarray:
+        """``tau_0 (B, T_h, A)``, unnormalized, rows ``[:T_o]`` = the inpainted history.
+
+        ``xi (B, n_xi)``; ``x_hist (B, T_o, nx)`` or ``(B, nx)`` current state(s);
+        ``u_hist (B, T_o, nu)`` or ``(B, nu)`` previous control(s) ``u_{t-1}`` (zeros at t = 0).
+        Play rows ``[T_o : T_o + T_a]``. ``k_rollout`` (<= K) denoising steps, default K.
+        """
+        x_hist = np.asarray(x_hist, float)
+        u_hist = np.asarray(u_hist, float)
+        if x_hist.ndim == 2:
+            x_hist = x_hist[:, None]
+        if u_hist.ndim == 2:
+            u_hist = u_hist[:, None]
+        if k_rollout is not None and not 1 <= k_rollout <= self.K:
+            raise SdpError(f"k_rollout must be in [1, {self.K}], got {k_rollout}")
+        obs = self._obs(x_hist, u_hist)                                       # (B, T_o, n_o)
+        a_hist = self.normalizer.normalize("action", as_tensor(self.a_hist(x_hist, u_hist), self.device))
+        xi_n = self.normalizer.normalize("xi", as_tensor(xi, self.device))
+        tau = self.sample(xi_n, obs, a_hist, k_rollout, generator)
+        return self.normalizer.unnormalize("action", tau).double().cpu().numpy()

@@ -1,77 +1,61 @@
 """Methods: the registry that training, checkpoints, rollouts and the estimate dispatch through.
 
-A *method* is a name, a *family* and whether it trains with the Sobolev term. The family says
-how a method's data are cut into samples, its network is built, its loss is computed and its
-trained policy is run (:class:`MethodFamily`). Built in (:mod:`sdp_cli.policy.families`):
+A *method* is a name, a policy class (a :class:`~sdp_cli.policy.base.Policy` subclass: its family) and
+whether it trains with the Sobolev term. Built in:
 
-- diffusion (chunked, Algorithm 2): ``sdp`` (Sobolev, eq. (6)) and ``dp`` (eq. (2));
-- MLP (one control per state): ``pddp`` and ``pddp_s`` (Sobolev, eq. (4)),
+- ``sdp`` (Sobolev, eq. (6)) and ``dp`` (eq. (2)): :class:`sdp_cli.policy.diffusion.DiffusionUnetPolicy`
+  (chunked, Algorithm 2);
+- ``pddp`` and ``pddp_s`` (Sobolev, eq. (4)): :class:`sdp_cli.policy.mlp.MLPPolicy` (one control per state).
 
-registered when the package ``sdp_cli.policy`` is imported (which any import of this module does first).
-
-Adding a method is one :class:`MethodFamily` subclass (or a new name for an existing family)
-and one :func:`register_method` call; ``tests/test_method_registry.py`` adds a toy method that way
-and trains, saves, loads and rolls it out through ``sdp``'s own code.
+The built-in classes are named as ``"module:Class"`` strings and imported when a policy is built, so reading
+the registry (the CLI's start-up, option checks) does not import torch. Adding a family is one module with a
+``Policy`` subclass and one :func:`register_method` call; ``tests/test_method_registry.py`` adds a toy
+linear family that way and trains, saves, loads and rolls it out through ``sdp``'s own commands.
 """
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
-from typing import Callable
 
 from sdp_cli.errors import SdpError
-
-
-class MethodFamily:
-    """What a family of methods implements (shapes in the docstrings of the built-in families)."""
-
-    #: plans chunks of T_h actions from (x, u_prev, xi) instead of one control per state: the trained
-    #: policy is then a :class:`~sdp_cli.policy.api.DiffusionPolicy` (``predict_chunk``, Algorithm 2),
-    #: else an :class:`~sdp_cli.policy.api.MLPPolicy` (``act``); rollouts and T_a options follow it
-    chunked: bool = False
-
-    def dims(self, cfg, task, action: str) -> dict:
-        """Network sizes ``{n_action, n_obs, n_xi, ndx}``."""
-        raise NotImplementedError
-
-    def dataset(self, cfg, task, arrays: dict, with_jacobians: bool):
-        """``(dataset, action)``: the training samples of a TO dataset (``.tensors(normalizer, device)``,
-        ``.epoch_size()``) and the action variable the network predicts."""
-        raise NotImplementedError
-
-    def build_net(self, cfg, dims: dict):
-        """A fresh ``nn.Module`` with a ``normalizer`` attribute."""
-        raise NotImplementedError
-
-    def scheduler(self, cfg):
-        """The noise scheduler the loss and sampling use, or None."""
-        return None
-
-    def loss(self, cfg, scheduler, sobolev: bool, sobolev_scale: float) -> Callable:
-        """``loss_fn(net, batch, generator) -> (loss, {"dp": regression, "sobolev": term})``."""
-        raise NotImplementedError
-
-    def balance_terms(self, cfg, tensors: dict):
-        """``(targets, jacobians)`` of the Sobolev balance (:func:`sdp_cli.losses.sobolev.balance_scale`)."""
-        raise NotImplementedError
 
 
 @dataclass(frozen=True)
 class Method:
     name: str
-    family: MethodFamily
+    policy: object          # a Policy subclass, or "module:Class" imported on first use
     sobolev: bool
+    chunked: bool
     description: str = ""
+
+    @property
+    def policy_class(self):
+        """The :class:`~sdp_cli.policy.base.Policy` subclass of this method."""
+        if not isinstance(self.policy, str):
+            return self.policy
+        module, _, name = self.policy.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        if bool(cls.chunked) != self.chunked:
+            raise SdpError(f"method {self.name!r}: {self.policy} is {'' if cls.chunked else 'not '}chunked, "
+                           f"registered as {'' if self.chunked else 'not '}chunked")
+        return cls
 
 
 _REGISTRY: dict[str, Method] = {}
 
 
-def register_method(name: str, family: MethodFamily, sobolev: bool, description: str = "") -> Method:
-    """Make ``name`` a method (``sdp train --method name``); re-registering replaces it."""
+def register_method(name: str, policy, sobolev: bool, description: str = "", chunked: bool | None = None) -> Method:
+    """Make ``name`` a method (``sdp train --method name``) trained and run by ``policy`` (a Policy subclass,
+    or ``"module:Class"`` with ``chunked`` given, imported when first used); re-registering replaces it."""
     if not name or not name.replace("_", "").isalnum():
         raise SdpError(f"method names are identifiers, got {name!r}")
-    m = Method(name, family, bool(sobolev), description)
+    if isinstance(policy, str):
+        if chunked is None:
+            raise SdpError(f"method {name!r}: a policy named by string needs chunked=True/False")
+    else:
+        chunked = bool(policy.chunked)
+    m = Method(name, policy, bool(sobolev), bool(chunked), description)
     _REGISTRY[name] = m
     return m
 
@@ -84,3 +68,19 @@ def get_method(name: str) -> Method:
 
 def method_names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
+
+
+def make_policy(config, dims: dict):
+    """A fresh policy of ``config.method`` (untrained, normalizer at its defaults): ``(config, dims) -> Policy``."""
+    return get_method(config.method).policy_class(config, dims)
+
+
+def _register_builtin() -> None:
+    diffusion, mlp = "sdp_cli.policy.diffusion:DiffusionUnetPolicy", "sdp_cli.policy.mlp:MLPPolicy"
+    register_method("sdp", diffusion, sobolev=True, chunked=True, description="Sobolev diffusion policy, eq. (6)")
+    register_method("dp", diffusion, sobolev=False, chunked=True, description="diffusion policy, eq. (2)")
+    register_method("pddp", mlp, sobolev=False, chunked=False, description="MLP regression on the TO data")
+    register_method("pddp_s", mlp, sobolev=True, chunked=False, description="MLP with the Sobolev term of eq. (4)")
+
+
+_register_builtin()

@@ -174,7 +174,7 @@ def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
     for path in sorted((root / PIPELINES_DIR).glob("*.yaml")):
         for _, g in group_items(yaml.safe_load(path.read_text()) or {"groups": []}):
             g = {**GROUP_DEFAULTS, **g}
-            if not any(get_method(m).family.chunked for m in g["methods"]):
+            if not any(get_method(m).chunked for m in g["methods"]):
                 continue
             h = int(g["horizon"])
             out |= {(g["task"], h, int(t_a)) for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}}
