@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
-import os
 import sys
 import time
 from dataclasses import replace
@@ -113,31 +112,61 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen
     return policy.to(device), tensors, ds.epoch_size(), action, dims
 
 
-def _metrics_bytes(rows: list[dict]) -> bytes:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=METRIC_FIELDS, extrasaction="ignore")   # (older files: wall_time)
-    w.writeheader()
-    w.writerows(rows)
-    return buf.getvalue().encode()
+class MetricsLog:
+    """``metrics.csv`` of a run: one row per step (:data:`METRIC_FIELDS`), appended to the file every
+    :data:`METRICS_EVERY_S` seconds and rewritten whole with each checkpoint."""
+
+    def __init__(self, path: Path, rows: list[dict], resumed: bool):
+        self.path, self.rows = path, rows
+        self.flushed = len(rows) if resumed else 0
+        self.last_flush = time.perf_counter()
+        if resumed:   # drop rows the killed run logged after its last checkpoint
+            self.rewrite()
+
+    @staticmethod
+    def read(path: Path, max_step: int) -> list[dict]:
+        if not path.is_file():
+            return []
+        with open(path, newline="") as f:
+            return [r for r in csv.DictReader(f) if int(r["step"]) <= max_step]
+
+    def to_bytes(self) -> bytes:
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=METRIC_FIELDS, extrasaction="ignore")   # (older files: wall_time)
+        w.writeheader()
+        w.writerows(self.rows)
+        return buf.getvalue().encode()
+
+    def add(self, step: int, steps_per_epoch: int, loss, parts: dict, lr: float, gnorm) -> dict:
+        row = {"step": step, "epoch": step // steps_per_epoch, "loss": f"{loss.item():.6g}",
+               "dp": f"{parts['dp'].item():.6g}", "sobolev": f"{parts['sobolev'].item():.6g}",
+               "lr": f"{lr:.6g}", "grad_norm": f"{float(gnorm):.4g}"}
+        self.rows.append(row)
+        if time.perf_counter() - self.last_flush >= METRICS_EVERY_S:
+            self.flush()
+            self.last_flush = time.perf_counter()
+        return row
+
+    def rewrite(self) -> None:
+        atomic_write_bytes(self.path, lambda f: f.write(self.to_bytes()))
+        self.flushed = len(self.rows)
+
+    def flush(self) -> None:
+        """Append the rows since the last write (metrics.csv follows training every few seconds)."""
+        if self.flushed == 0:
+            self.rewrite()
+            return
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, fieldnames=METRIC_FIELDS, extrasaction="ignore").writerows(self.rows[self.flushed:])
+        self.flushed = len(self.rows)
 
 
-def _read_metrics(path: Path, max_step: int) -> list[dict]:
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return [r for r in csv.DictReader(f) if int(r["step"]) <= max_step]
-
-
-def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
-          init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
-          on_step: Callable[[int], None] | None = None) -> Path:
-    """Train and return the path of the final checkpoint (see the module docstring)."""
-    from diffusers.optimization import get_scheduler
-    from diffusers.training_utils import EMAModel
-
-    dev = resolve_device(device)
-    out = Path(out)
-    ck_path = out / CHECKPOINT_NAME
+def reconcile_config(cfg: TrainConfig, ck_path: Path, resume: bool, init) -> tuple[TrainConfig, dict | None,
+                                                                                  dict | None]:
+    """``(cfg, prev, init_ck)``: the config a run trains with. ``--resume``: the run's own (other settings are
+    refused, ``alpha_sobolev`` None means the task's default); ``--init``: the init checkpoint's
+    architecture fields win. ``prev`` / ``init_ck`` are the loaded checkpoints (or None)."""
+    out = ck_path.parent
     if out.exists() and not out.is_dir():
         raise SdpError(f"--out {out} exists and is not a folder")
     prev = None
@@ -163,7 +192,11 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         if init_cfg.method != cfg.method:
             raise SdpError(f"--init checkpoint is a {init_cfg.method!r} policy, not {cfg.method!r}")
         cfg = TrainConfig.from_dict({**cfg.to_dict(), **{k: getattr(init_cfg, k) for k in ARCH_FIELDS}})
+    return cfg, prev, init_ck
 
+
+def _load_data(data, cfg: TrainConfig, prev: dict | None, init_ck: dict | None, ck_path: Path):
+    """``(arrays, meta, task, sha256)`` of the dataset, checked against the resumed run / init checkpoint."""
     ref_task = (prev or init_ck or {}).get("task")
     arrays, meta, task = load_dataset(data, require_gains=cfg.sobolev, task_name=ref_task)
     fingerprint = file_sha256(data)
@@ -172,23 +205,16 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             raise SdpError(f"dataset task {meta['task']!r} does not match the {what}'s task {ref['task']!r}")
     if prev is not None and prev["dataset"]["sha256"] != fingerprint:
         raise SdpError(f"cannot resume: {data} is not the dataset {ck_path} was trained on")
+    return arrays, meta, task, fingerprint
 
-    if cfg.alpha_sobolev is None:
-        cfg = replace(cfg, alpha_sobolev=float(task.alpha_sobolev))
-    torch.manual_seed(cfg.seed)
-    norm = None
-    if init_ck is not None or prev is not None:
-        from sdp_cli.policy.checkpoint import policy_from_checkpoint
-        norm = policy_from_checkpoint(prev or init_ck).normalizer
-    # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
-    policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
-    fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
-    sob_scale = policy.sobolev_scale
-    n_samples = next(iter(tensors.values())).shape[0]
-    steps_per_epoch = epoch_steps(E, cfg.batch_size)
-    total = cfg.epochs * steps_per_epoch
+
+def _optimisation(cfg: TrainConfig, policy, total: int, init_ck: dict | None, fitted_norm: dict):
+    """``(opt, lr_scheduler, ema, generator)``: AdamW, cosine schedule with warm-up, EMA (diffusion policy's
+    settings), the batch/noise generator; ``--init`` loads the init checkpoint's weights and EMA."""
+    from diffusers.optimization import get_scheduler
+    from diffusers.training_utils import EMAModel
+
     warmup = cfg.warmup_steps if cfg.warmup_steps is not None else min(500, total // 10)
-
     opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
                             foreach=True)   # one fused pass over the ~200 tensors (bitwise the same result)
     sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
@@ -200,22 +226,54 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     if init_ck is not None:
         policy.load_state_dict(init_ck["model"])
         policy.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's
-    step, wall0, rows = 0, 0.0, []
+    return opt, sched, ema, gen
+
+
+def _restore(prev: dict, policy, opt, sched, ema, gen, dev, ck_path: Path, out: Path) -> tuple[int, float]:
+    """``--resume``: weights, optimizer, schedule, EMA and random state of the checkpoint; ``(step, wall0)``."""
+    policy.load_state_dict(prev["model"])
+    ts = prev["train_state"]
+    opt.load_state_dict(ts["optimizer"])
+    sched.load_state_dict(ts["lr_scheduler"])
+    ema.load_state_dict(ts["ema"])
+    ema.to(dev)  # the checkpoint is loaded on the CPU; EMA updates need the weights' device
+    try:
+        gen.set_state(ts["generator"].cpu())
+    except RuntimeError:
+        raise SdpError(f"cannot resume {ck_path} on {dev}: it was trained on another device type "
+                       "(its random state does not carry over); resume with the same --device") from None
+    return int(prev["step"]), float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
+
+
+def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
+          init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
+          on_step: Callable[[int], None] | None = None) -> Path:
+    """Train and return the path of the final checkpoint (see the module docstring): reconcile the config,
+    build the policy and its optimisation, then a loop of :func:`train_step` with the metrics log and
+    checkpoints."""
+    dev = resolve_device(device)
+    out = Path(out)
+    ck_path = out / CHECKPOINT_NAME
+    cfg, prev, init_ck = reconcile_config(cfg, ck_path, resume, init)
+    arrays, meta, task, fingerprint = _load_data(data, cfg, prev, init_ck, ck_path)
+    if cfg.alpha_sobolev is None:
+        cfg = replace(cfg, alpha_sobolev=float(task.alpha_sobolev))
+    torch.manual_seed(cfg.seed)
+    norm = None
+    if init_ck is not None or prev is not None:
+        from sdp_cli.policy.checkpoint import policy_from_checkpoint
+        norm = policy_from_checkpoint(prev or init_ck).normalizer
+    # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
+    policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
+    fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
+    n_samples = next(iter(tensors.values())).shape[0]
+    steps_per_epoch = epoch_steps(E, cfg.batch_size)
+    total = cfg.epochs * steps_per_epoch
+    opt, sched, ema, gen = _optimisation(cfg, policy, total, init_ck, fitted_norm)
+    step, wall0 = 0, 0.0
     if prev is not None:
-        policy.load_state_dict(prev["model"])
-        ts = prev["train_state"]
-        opt.load_state_dict(ts["optimizer"])
-        sched.load_state_dict(ts["lr_scheduler"])
-        ema.load_state_dict(ts["ema"])
-        ema.to(dev)  # the checkpoint is loaded on the CPU; EMA updates need the weights' device
-        try:
-            gen.set_state(ts["generator"].cpu())
-        except RuntimeError:
-            raise SdpError(f"cannot resume {ck_path} on {dev}: it was trained on another device type "
-                           "(its random state does not carry over); resume with the same --device") from None
-        step = int(prev["step"])
-        wall0 = float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
-        rows = _read_metrics(out / "metrics.csv", step)
+        step, wall0 = _restore(prev, policy, opt, sched, ema, gen, dev, ck_path, out)
+    rows = MetricsLog.read(out / "metrics.csv", step) if prev is not None else []
 
     created = not out.exists()
     ensure_dir(out, "run folder")
@@ -226,7 +284,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                         "T": int(task.T)},
             "init": portable_path(init, out) if init is not None else (prev or {}).get("init"),
             "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev),
-            "sobolev_scale": sob_scale}
+            "sobolev_scale": policy.sobolev_scale}
 
     def checkpoint(path: Path, with_state: bool = True):
         ema.store(policy.parameters())
@@ -242,29 +300,18 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
         save_checkpoint(path, payload)
         if with_state:
             save_timing(out, {"wall_time": wall0 + (time.perf_counter() - t0), "step": step, "device": str(dev)})
-        atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
-        flushed[0] = len(rows)
-
-    def flush_metrics():
-        """Append the rows since the last write (metrics.csv follows training every few seconds)."""
-        if flushed[0] == 0:
-            atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
-        else:
-            with open(out / "metrics.csv", "a", newline="") as f:
-                csv.DictWriter(f, fieldnames=METRIC_FIELDS, extrasaction="ignore").writerows(rows[flushed[0]:])
-        flushed[0] = len(rows)
+        metrics.rewrite()
 
     n_params = sum(p.numel() for p in policy.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
         f"{steps_per_epoch} step(s) of <= {min(cfg.batch_size, E)} (batch size {cfg.batch_size}, drawn without "
         f"replacement); {cfg.epochs} epochs = {total} steps; "
         f"{n_params} parameters; device {dev}" +
-        (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {sob_scale:.3g}" if cfg.sobolev else "") + (f"; resuming at step {step}" if prev is not None else ""))
+        (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {policy.sobolev_scale:.3g}" if cfg.sobolev else "") +
+        (f"; resuming at step {step}" if prev is not None else ""))
     t0 = time.perf_counter()
-    last_ck = last_flush = time.perf_counter()
-    if prev is not None:   # drop rows the killed run logged after its last checkpoint
-        atomic_write_bytes(out / "metrics.csv", lambda f: f.write(_metrics_bytes(rows)))
-    flushed = [len(rows) if prev is not None else 0]
+    last_ck = time.perf_counter()
+    metrics = MetricsLog(out / "metrics.csv", rows, resumed=prev is not None)
     policy.train()
     bar = _progress(progress)
     from sdp_cli.interrupts import deferred
@@ -285,17 +332,12 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                     raise SdpError(f"training diverged at step {step} (loss {e.loss}); "
                                    f"try a lower --lr or --alpha-sobolev") from None
                 step += 1
-                rows.append({"step": step, "epoch": step // steps_per_epoch, "loss": f"{loss.item():.6g}",
-                             "dp": f"{parts['dp'].item():.6g}", "sobolev": f"{parts['sobolev'].item():.6g}",
-                             "lr": f"{sched.get_last_lr()[0]:.6g}", "grad_norm": f"{float(gnorm):.4g}"})
+                row = metrics.add(step, steps_per_epoch, loss, parts, sched.get_last_lr()[0], gnorm)
                 if step % 10 == 0 or step == total:
-                    bar.update(task_id, completed=step, info=f"loss {rows[-1]['loss']} dp {rows[-1]['dp']} "
-                                                             f"sob {rows[-1]['sobolev']} lr {rows[-1]['lr']}")
+                    bar.update(task_id, completed=step, info=f"loss {row['loss']} dp {row['dp']} "
+                                                             f"sob {row['sobolev']} lr {row['lr']}")
                 if step % steps_per_epoch == 0 and (step // steps_per_epoch) in cfg.save_at:
                     checkpoint(out / f"epoch_{step // steps_per_epoch}.pt", with_state=False)
-                if time.perf_counter() - last_flush >= METRICS_EVERY_S:
-                    flush_metrics()
-                    last_flush = time.perf_counter()
                 if step < total and time.perf_counter() - last_ck >= cfg.checkpoint_every_s:
                     checkpoint(ck_path)
                     last_ck = time.perf_counter()
@@ -303,7 +345,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                     on_step(step)
                 interrupt.check(lambda: checkpoint(ck_path))   # Ctrl-C / SIGTERM: stop at this step boundary
     checkpoint(ck_path)
-    log(f"done: {step} steps, final loss {rows[-1]['loss'] if rows else 'n/a'}, "
+    log(f"done: {step} steps, final loss {metrics.rows[-1]['loss'] if metrics.rows else 'n/a'}, "
         f"{time.perf_counter() - t0:.1f} s; checkpoint {ck_path}")
     return ck_path
 

@@ -26,7 +26,6 @@ import numpy as np
 import torch
 from diffusers.utils.torch_utils import randn_tensor
 from diffusers import DDPMScheduler
-from torch import nn
 
 from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.errors import SdpError
@@ -34,7 +33,6 @@ from sdp_cli.losses.sobolev import sobolev_term
 from sdp_cli.policy.base import Policy, as_tensor
 if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
     from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.tasks import Task
 from sdp_cli.policy.unet import ConditionalUnet1D
 
 
