@@ -1,0 +1,368 @@
+"""Box-FDDP: the paper's solver family (DDP), batched over instances, on the task's own OCP.
+
+Algorithm (our implementation, read from the papers; no crocoddyl or aligator code):
+
+- **FDDP** (Mastalli et al., "Crocoddyl: an efficient and versatile framework for multi-contact optimal
+  control", ICRA 2020): iterates ``(X, U)`` may have dynamics gaps ``fbar_{t+1} = f(x_t, u_t) - x_{t+1}``
+  (and ``fbar_0 = x_0 - X_0``). The backward pass is a Riccati recursion of the LQ model with the gaps
+  (``V'_x = V_x + V_xx fbar``); the forward pass is the nonlinear rollout
+  ``u^_t = clip(u_t + a k_t + K_t (x^_t - x_t))``, ``x^_{t+1} = f(x^_t, u^_t) - (1 - a) fbar_{t+1}``,
+  ``x^_0 = X_0 + a fbar_0``: a step ``a = 1`` closes every gap, ``a < 1`` shrinks them by ``1 - a``.
+- **Control bounds** in the backward pass by the projected-Newton box QP of Tassa et al., "Control-limited
+  differential dynamic programming", ICRA 2014 (:mod:`sdp_cli.trajopt.boxqp`): ``k_t`` solves
+  ``min 1/2 du' Quu du + Qu' du`` on ``u_lb - u_t <= du <= u_ub - u_t``, ``K_t`` has zero rows on the clamped
+  controls; the rollout clips to the bounds.
+- **Hessians**: Gauss-Newton in the dynamics (exact cost Hessians, no second-order dynamics term), as FDDP.
+  The feedback gains stored with a solution are recomputed at the converged point with the exact Hessian of
+  the Lagrangian (co-states ``lambda_{t+1} = V_x(t+1)``) by :func:`sdp_cli.trajopt.gains.riccati_gains`, the
+  same code that gives fatrop's solutions their gains, so a DDP dataset trains SDP on true sensitivities.
+- **Regularization** ``Quu + mu I``: ``mu`` starts at ``REG_INIT``; x10 when the backward pass meets a
+  ``Quu + mu I`` that is not positive definite or the accepted step is <= ``STEP_INC`` (or none is accepted);
+  /10 (not below ``REG_MIN``) when the step is > ``STEP_DEC``; above ``REG_MAX`` the solve stops, failed.
+- **Line search**: steps ``1, 1/2, ..., 2^-10``; the expected change of a step ``a`` is the LQ model's
+  ``a d1 + a^2 / 2 d2`` along the full step (``d1``: gradient, ``d2``: curvature, both with the gaps); a step
+  is accepted when the actual cost decrease is >= ``ACCEPT`` x the expected one, or, where the model predicts
+  an increase (closing gaps can cost), when the increase is at most ``ACCEPT_NEG`` x the predicted one.
+- **Stopping rule, "converged"**: the iterate is feasible (every gap <= ``GAP_TOL``) and the squared norm of
+  the free part of ``Q_u`` summed over the horizon (the reduced gradient: crocoddyl's stopping criterion) is
+  <= ``tol`` (default ``STOP_TOL``); a solve that reaches ``max_iter`` (default 1000) iterations, or
+  ``REG_MAX``, is "not converged", its last iterate returned.
+
+Batched: ``solve_batch`` iterates N instances together as arrays ``(N, T, ...)``: derivatives in one call of
+a compiled casadi map over ``N T`` stages, the backward pass and the rollouts as array operations over the
+instances (sequential in t only). An instance that converged (or failed) leaves the active set and stops
+changing. Its ``solve_time`` is its iterations x the batch's wall time per instance-iteration, so the times
+of a batch sum to its wall time (recorded as ``batch_wall_time`` on every result).
+
+Scope today: tasks whose state is a vector space (``nx == ndx``) without state constraints (the pendulums,
+UR5); the quadrotor (a free-flyer with floor, ceiling and column constraints) needs the augmented-Lagrangian
+outer loop and is refused with one line.
+"""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from sdp_cli.errors import SdpError
+from sdp_cli.trajopt import gains as _gains
+from sdp_cli.trajopt.boxqp import box_qp, free_solve
+from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
+from sdp_cli.trajopt.solver import DEFAULT_MAX_ITER, SolveResult
+
+STOP_TOL = 1e-9
+GAP_TOL = 1e-9
+REG_INIT, REG_MIN, REG_MAX, REG_FACTOR = 1e-9, 1e-9, 1e9, 10.0
+STEP_INC, STEP_DEC = 0.01, 0.5
+ACCEPT, ACCEPT_NEG = 0.1, 2.0
+ALPHAS = tuple(2.0 ** -np.arange(11))
+
+
+def ddp_functions(task) -> list[ca.Function]:
+    """The SX functions box-FDDP evaluates (ambient = tangent coordinates here):
+
+    - ``sdp_ddp_stage(x, u, xi) -> (f, A, B, l, l_x, l_u, l_xx, l_uu, l_ux)``
+    - ``sdp_ddp_term(x, xi) -> (l_T, l_Tx, l_Txx)``
+    - ``sdp_ddp_step(x, u) -> f``, ``sdp_ddp_cost(x, u, xi) -> l``
+    - ``sdp_ddp_hess(x, u, xi, lam) -> d^2/d(x,u)^2 [l - lam' f]`` (the exact Hessian of the gains)
+    """
+    x, u, xi = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
+    lam = ca.SX.sym("lam", task.nx)
+    f = task.f_step(x, u)
+    l_run = task.f_running_cost(x, u, xi)
+    l_T = task.f_terminal_cost(x, xi)
+    lu = ca.gradient(l_run, u)
+    stage = ca.Function("sdp_ddp_stage", [x, u, xi],
+                        [f, ca.jacobian(f, x), ca.jacobian(f, u), l_run, ca.gradient(l_run, x), lu,
+                         ca.hessian(l_run, x)[0], ca.hessian(l_run, u)[0], ca.jacobian(lu, x)])
+    term = ca.Function("sdp_ddp_term", [x, xi], [l_T, ca.gradient(l_T, x), ca.hessian(l_T, x)[0]])
+    step = ca.Function("sdp_ddp_step", [x, u], [f])
+    cost = ca.Function("sdp_ddp_cost", [x, u, xi], [l_run])
+    z = ca.vertcat(x, u)
+    hess = ca.Function("sdp_ddp_hess", [x, u, xi, lam], [ca.hessian(l_run - ca.dot(lam, f), z)[0]])
+    return [stage, term, step, cost, hess]
+
+
+def _cols(M, n: int, rows: int, cols: int) -> np.ndarray:
+    """casadi's horizontally stacked map output ``(rows, n cols)`` -> ``(n, rows, cols)``."""
+    return np.asarray(M).reshape(rows, n, cols).transpose(1, 0, 2)
+
+
+class DDPSolver:
+    """Box-FDDP for one task and horizon (see the module docstring); ``solve`` / ``solve_from`` return a
+    :class:`~sdp_cli.trajopt.solver.SolveResult` like the NLP solvers, ``solve_batch`` N of them."""
+
+    solver_name = "ddp"
+
+    def __init__(self, task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER, tol: float = STOP_TOL,
+                 jit: bool | None = None):
+        if task.n_h:
+            raise SdpError(f"the DDP solver handles control bounds only; task {task.name!r} has state constraints "
+                           "(its augmented-Lagrangian outer loop is not built yet): use --to ms")
+        if task.nx != task.ndx:
+            raise SdpError(f"the DDP solver needs a vector-space state; task {task.name!r} has a configuration "
+                           "manifold (nx != ndx): use --to ms")
+        self.task, self.T = task, int(task.T if horizon is None else horizon)
+        if self.T < 1 or int(max_iter) < 0 or not tol > 0:
+            raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
+        self.max_iter, self.tol = int(max_iter), float(tol)
+        funcs = ddp_functions(task)
+        jit = jit_enabled_by_default() if jit is None else bool(jit)
+        lib = None
+        if jit:
+            family = getattr(task, "compile_family", None) or task.name
+            lib = compile_functions("sdp_ddp_" + "".join(c if c.isalnum() else "_" for c in family), funcs)
+        self._f = {f.name(): (ca.external(f.name(), lib) if lib is not None else f) for f in funcs}
+        self.jitted = lib is not None
+        self._maps: dict = {}
+
+    def __repr__(self) -> str:
+        return f"DDPSolver(task={self.task.name!r}, T={self.T}, max_iter={self.max_iter}, jit={self.jitted})"
+
+    def _map(self, name: str, n: int) -> ca.Function:
+        key = (name, n)
+        if key not in self._maps:
+            self._maps[key] = self._f[name].map(n, "serial")
+        return self._maps[key]
+
+    # ------------------------------------------------------------------ evaluations (batched)
+    def _derivatives(self, X, U, xi):
+        """Stage and terminal derivatives along ``X (n, T+1, nx)``, ``U (n, T, nu)``."""
+        n, T, nx, nu = len(X), self.T, self.task.nx, self.task.nu
+        m = n * T
+        xs = X[:, :-1].reshape(m, nx).T
+        us = U.reshape(m, nu).T
+        xis = np.repeat(xi, T, axis=0).T
+        f, A, B, l, lx, lu, lxx, luu, lux = self._map("sdp_ddp_stage", m)(xs, us, xis)
+        d = {"f": np.asarray(f).T.reshape(n, T, nx), "A": _cols(A, m, nx, nx).reshape(n, T, nx, nx),
+             "B": _cols(B, m, nx, nu).reshape(n, T, nx, nu), "l": np.asarray(l).reshape(n, T),
+             "lx": np.asarray(lx).T.reshape(n, T, nx), "lu": np.asarray(lu).T.reshape(n, T, nu),
+             "lxx": _cols(lxx, m, nx, nx).reshape(n, T, nx, nx), "luu": _cols(luu, m, nu, nu).reshape(n, T, nu, nu),
+             "lux": _cols(lux, m, nu, nx).reshape(n, T, nu, nx)}
+        lT, lTx, lTxx = self._map("sdp_ddp_term", n)(X[:, -1].T, xi.T)
+        d["lT"], d["lTx"], d["lTxx"] = np.asarray(lT).ravel(), np.asarray(lTx).T, _cols(lTxx, n, nx, nx)
+        d["J"] = d["l"].sum(1) + d["lT"]
+        return d
+
+    def _cost(self, X, U, xi) -> np.ndarray:
+        n, T = len(X), self.T
+        m = n * T
+        l = np.asarray(self._map("sdp_ddp_cost", m)(X[:, :-1].reshape(m, -1).T, U.reshape(m, -1).T,
+                                                    np.repeat(xi, T, axis=0).T)).reshape(n, T)
+        lT = np.asarray(self._map("sdp_ddp_term", n)(X[:, -1].T, xi.T)[0]).ravel()
+        return l.sum(1) + lT
+
+    # ------------------------------------------------------------------ backward pass
+    def _backward(self, d, gaps, U, reg):
+        """Riccati recursion with gaps and the box QP. Returns ``(k (n,T,nu), K (n,T,nu,nx), Vx (n,T+1,nx),
+        free (n,T,nu), stop (n,), ok (n,))``; ``ok`` False where ``Quu + reg I`` is not positive definite."""
+        task, T = self.task, self.T
+        n, nx, nu = len(U), task.nx, task.nu
+        k, K = np.zeros((n, T, nu)), np.zeros((n, T, nu, nx))
+        Vx_all = np.zeros((n, T + 1, nx))
+        free_all = np.ones((n, T, nu), dtype=bool)
+        stop = np.zeros(n)
+        ok = np.ones(n, dtype=bool)
+        Vx, Vxx = d["lTx"].copy(), d["lTxx"].copy()
+        Vx_all[:, T] = Vx
+        eye = np.eye(nu)
+        for t in reversed(range(T)):
+            A, B = d["A"][:, t], d["B"][:, t]
+            Vxp = Vx + np.einsum("nij,nj->ni", Vxx, gaps[:, t + 1])
+            At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
+            Qx = d["lx"][:, t] + np.einsum("nij,nj->ni", At, Vxp)
+            Qu = d["lu"][:, t] + np.einsum("nij,nj->ni", Bt, Vxp)
+            VA, VB = Vxx @ A, Vxx @ B
+            Qxx = d["lxx"][:, t] + At @ VA
+            Quu = d["luu"][:, t] + Bt @ VB
+            Qux = d["lux"][:, t] + Bt @ VA
+            Quu_r = 0.5 * (Quu + Quu.transpose(0, 2, 1)) + reg[:, None, None] * eye
+            pd = np.linalg.eigvalsh(Quu_r)[:, 0] > 0
+            ok &= pd
+            Quu_r[~pd] = eye                                         # these instances retry with more reg
+            lo, hi = task.u_lb - U[:, t], task.u_ub - U[:, t]
+            kt = -np.linalg.solve(Quu_r, Qu[:, :, None])[:, :, 0]
+            free = np.ones((n, nu), dtype=bool)
+            out = np.any((kt < lo) | (kt > hi), axis=1)
+            if out.any():
+                kb, fb, _ = box_qp(Quu_r[out], Qu[out], lo[out], hi[out], np.clip(kt[out], lo[out], hi[out]))
+                kt[out], free[out] = kb, fb
+            Kt = -free_solve(Quu_r, Qux, free)
+            k[:, t], K[:, t], free_all[:, t] = kt, Kt, free
+            stop += np.sum(np.where(free, Qu, 0.0) ** 2, axis=1)
+            KtT = Kt.transpose(0, 2, 1)
+            Vx = (Qx + np.einsum("nij,nj->ni", KtT, np.einsum("nij,nj->ni", Quu, kt)) + np.einsum("nij,nj->ni", KtT, Qu)
+                  + np.einsum("nji,nj->ni", Qux, kt))
+            Vxx = Qxx + KtT @ Quu @ Kt + KtT @ Qux + Qux.transpose(0, 2, 1) @ Kt
+            Vxx = 0.5 * (Vxx + Vxx.transpose(0, 2, 1))
+            Vx_all[:, t] = Vx
+        return k, K, Vx_all, free_all, stop, ok
+
+    def _model(self, d, gaps, k, K):
+        """``(d1, d2)``: gradient and curvature of the LQ model along the full step (gaps included)."""
+        n, T = k.shape[:2]
+        dx = gaps[:, 0].copy()
+        d1, d2 = np.zeros(n), np.zeros(n)
+        for t in range(T):
+            du = k[:, t] + np.einsum("nij,nj->ni", K[:, t], dx)
+            d1 += np.einsum("ni,ni->n", d["lx"][:, t], dx) + np.einsum("ni,ni->n", d["lu"][:, t], du)
+            d2 += (np.einsum("ni,nij,nj->n", dx, d["lxx"][:, t], dx) + 2 * np.einsum("ni,nij,nj->n", du, d["lux"][:, t], dx)
+                   + np.einsum("ni,nij,nj->n", du, d["luu"][:, t], du))
+            dx = np.einsum("nij,nj->ni", d["A"][:, t], dx) + np.einsum("nij,nj->ni", d["B"][:, t], du) + gaps[:, t + 1]
+        d1 += np.einsum("ni,ni->n", d["lTx"], dx)
+        d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
+        return d1, d2
+
+    def _rollout(self, X, U, gaps, k, K, alpha):
+        """The forward pass of a step ``alpha (n,)``: ``(X^, U^)``."""
+        task, T = self.task, self.T
+        n = len(X)
+        a = alpha[:, None]
+        Xn, Un = np.empty_like(X), np.empty_like(U)
+        Xn[:, 0] = X[:, 0] + a * gaps[:, 0]
+        step = self._map("sdp_ddp_step", n)
+        for t in range(T):
+            Un[:, t] = np.clip(U[:, t] + a * k[:, t] + np.einsum("nij,nj->ni", K[:, t], Xn[:, t] - X[:, t]),
+                               task.u_lb, task.u_ub)
+            Xn[:, t + 1] = np.asarray(step(Xn[:, t].T, Un[:, t].T)).T - (1 - a) * gaps[:, t + 1]
+        return Xn, Un
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
+        xi = np.asarray(xi, float)
+        return self.solve_from(self.task.initial_state(xi), xi, X_init, U_init, gains=gains)
+
+    def solve_from(self, x0, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
+        return self.solve_batch(np.asarray(x0, float)[None], np.asarray(xi, float)[None],
+                                np.asarray(X_init, float)[None], np.asarray(U_init, float)[None], gains=gains)[0]
+
+    def solve_batch(self, x0, xi, X_init, U_init, *, gains: bool = True) -> list[SolveResult]:
+        """Solve N instances together: ``x0 (N, nx)``, ``xi (N, n_xi)``, guesses ``X_init (N, T+1, nx)``,
+        ``U_init (N, T, nu)``. Never raises on non-convergence."""
+        task, T = self.task, self.T
+        x0, xi = np.asarray(x0, float), np.asarray(xi, float)
+        X, U = np.array(X_init, dtype=float), np.array(U_init, dtype=float)
+        N = len(x0)
+        if X.shape != (N, T + 1, task.nx) or U.shape != (N, T, task.nu) or xi.shape != (N, task.n_xi):
+            raise SdpError(f"guesses of shape {X.shape}, {U.shape}, xi {xi.shape} do not match N = {N}, T = {T}, "
+                           f"task {task.name}")
+        U = np.clip(U, task.u_lb, task.u_ub)
+        t_start = time.perf_counter()
+        reg = np.full(N, REG_INIT)
+        iters = np.zeros(N, dtype=int)
+        converged = np.zeros(N, dtype=bool)
+        active = np.all(np.isfinite(X), axis=(1, 2)) & np.all(np.isfinite(U), axis=(1, 2))
+        status = ["" if a else "not converged: non-finite guess (solver not started)" for a in active]
+        cost = np.full(N, np.nan)
+        # per instance: V_x and the free controls of its last backward pass (for the gains)
+        Vx_keep, free_keep = np.zeros((N, T + 1, task.nx)), np.ones((N, T, task.nu), dtype=bool)
+        for _ in range(self.max_iter + 1):
+            idx = np.flatnonzero(active)
+            if not len(idx):
+                break
+            Xa, Ua, xia = X[idx], U[idx], xi[idx]
+            d = self._derivatives(Xa, Ua, xia)
+            gaps = np.concatenate([(x0[idx] - Xa[:, 0])[:, None], d["f"] - Xa[:, 1:]], axis=1)
+            cost[idx] = d["J"]
+            bad = ~np.isfinite(d["J"])
+            k, K, Vx, free, stop, ok = self._backward(d, np.where(np.isfinite(gaps), gaps, 0.0), Ua, reg[idx])
+            Vx_keep[idx], free_keep[idx] = Vx, free
+            feasible = np.abs(gaps).max(axis=(1, 2)) <= GAP_TOL
+            done = ok & feasible & (stop <= self.tol) & ~bad
+            converged[idx[done]] = True
+            for i in idx[done]:
+                status[i] = "converged"
+            out_of_iter = iters[idx] >= self.max_iter
+            for i in idx[out_of_iter & ~done]:
+                status[i] = f"not converged: {self.max_iter} iterations (the cap)"
+            for i in idx[bad & ~done]:
+                status[i] = "not converged: non-finite cost"
+            stopped = done | out_of_iter | bad
+            active[idx[stopped]] = False
+            go = ~stopped
+            iters[idx[go]] += 1
+            retry = go & ~ok                                    # Quu not positive definite: more regularization
+            reg[idx[retry]] *= REG_FACTOR
+            search = go & ok
+            if search.any():
+                s = np.flatnonzero(search)
+                acc_alpha = self._line_search(X, U, idx[s], xi, d, gaps, k, K, s)
+                for j, a in zip(idx[s], acc_alpha):
+                    if a > STEP_DEC:
+                        reg[j] = max(REG_MIN, reg[j] / REG_FACTOR)
+                    elif a <= STEP_INC:
+                        reg[j] *= REG_FACTOR
+            over = np.flatnonzero(active & (reg > REG_MAX))
+            for i in over:
+                status[i] = f"not converged: regularization above {REG_MAX:g} after {iters[i]} iterations"
+            active[over] = False
+        wall = time.perf_counter() - t_start
+        per_iter = wall / max(1, int(iters.sum()))
+        results = []
+        for i in range(N):
+            gap = np.concatenate([x0[i] - X[i, 0], (self._step_one(X[i, :-1], U[i]) - X[i, 1:]).ravel()])
+            res = SolveResult(X=X[i].copy(), U=U[i].copy(), cost=float(cost[i]), iterations=int(iters[i]),
+                              converged=bool(converged[i]), solve_time=float(iters[i] * per_iter),
+                              max_violation=float(np.abs(gap).max()) if np.all(np.isfinite(gap)) else float("inf"),
+                              status=status[i] or "not converged", K=np.full((T, task.nu, task.ndx), np.nan),
+                              A=np.full((T, task.ndx, task.ndx), np.nan), B=np.full((T, task.ndx, task.nu), np.nan),
+                              Phi=np.full((T, task.ndx, task.ndx), np.nan), clamped=~free_keep[i],
+                              active_h=np.zeros((T, 0), dtype=bool), solver="ddp", x0=x0[i].copy(), xi=xi[i].copy())
+            res.batch_wall_time = wall
+            if gains and converged[i]:
+                self._add_gains(res, Vx_keep[i])
+            results.append(res)
+        return results
+
+    def _step_one(self, X, U) -> np.ndarray:
+        return np.asarray(self._map("sdp_ddp_step", len(X))(X.T, U.T)).T
+
+    def _line_search(self, X, U, rows, xi, d, gaps, k, K, s):
+        """Try the steps of ``ALPHAS`` on the instances ``rows`` (positions ``s`` in the active arrays); write the
+        accepted iterates into ``X``, ``U``. Returns the accepted step per instance (0: none accepted)."""
+        sub = {key: v[s] for key, v in d.items()}
+        g, ks, Ks = gaps[s], k[s], K[s]
+        d1, d2 = self._model(sub, g, ks, Ks)
+        J0 = sub["J"]
+        accepted = np.zeros(len(rows))
+        pending = np.ones(len(rows), dtype=bool)
+        for a in ALPHAS:
+            p = np.flatnonzero(pending)
+            if not len(p):
+                break
+            alpha = np.full(len(p), a)
+            Xn, Un = self._rollout(X[rows[p]], U[rows[p]], g[p], ks[p], Ks[p], alpha)
+            J = self._cost(Xn, Un, xi[rows[p]])
+            expected = -(a * d1[p] + 0.5 * a * a * d2[p])       # the model's decrease
+            actual = J0[p] - J
+            good = np.isfinite(J) & np.where(expected >= 0, actual >= ACCEPT * expected, actual >= ACCEPT_NEG * expected)
+            for j in np.flatnonzero(good):
+                r = rows[p[j]]
+                X[r], U[r] = Xn[j], Un[j]
+            accepted[p[good]] = a
+            pending[p[good]] = False
+        return accepted
+
+    def _add_gains(self, res: SolveResult, Vx: np.ndarray) -> None:
+        """Feedback gains at a converged solution with the exact Lagrangian Hessian (co-states ``V_x``)."""
+        t0 = time.perf_counter()
+        task, T = self.task, self.T
+        X, U, xi = res.X, res.U, res.xi
+        d = self._derivatives(X[None], U[None], xi[None])
+        lam = -Vx[1:]                                             # d^2 [l + V_x(t+1)' f] = d^2 [l - lam' f]
+        H = self._map("sdp_ddp_hess", T)(X[:-1].T, U.T, np.repeat(xi[None], T, 0).T, lam.T)
+        s = task.nx + task.nu
+        H = _cols(H, T, s, s)
+        HT = d["lTxx"][0]
+        try:
+            K, _ = _gains.riccati_gains(d["A"][0], d["B"][0], H, HT, res.clamped)
+            if not np.all(np.isfinite(K)):
+                raise np.linalg.LinAlgError("non-finite gains")
+        except np.linalg.LinAlgError as e:
+            res.status += f"; gains unavailable ({e})"
+        else:
+            res.A, res.B, res.K = d["A"][0], d["B"][0], K
+            res.Phi = res.A + res.B @ K
+        res.gain_time = time.perf_counter() - t0

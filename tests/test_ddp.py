@@ -1,0 +1,181 @@
+"""Box-FDDP (sdp_cli/trajopt/ddp.py): exact on a linear-quadratic problem (one iteration, LQR gains), the box
+QP against casadi's QP solver, gains against finite differences of re-solves, and converged solutions that
+are local optima of the multiple-shooting OCP (fatrop warm-started there stays)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from sdp_cli.errors import SdpError
+from sdp_cli.solve_jobs import sample_xi
+from sdp_cli.tasks import get_task
+from sdp_cli.tasks.base import Task
+from sdp_cli.trajopt import get_solver
+from sdp_cli.trajopt.boxqp import box_qp
+from sdp_cli.trajopt.ddp import DDPSolver
+
+
+class FreeSpin(Task):
+    """A mass on a turntable (no gravity torque: linear semi-implicit Euler dynamics) with a quadratic cost and
+    loose torque bounds: an LQ problem. ``l_t = dt 1/2 (10 (q - q_goal)^2 + v^2 + 0.1 u^2)``,
+    ``l_T = 1/2 (10 (q_T - q_goal)^2 + v_T^2)``, xi = (q0, v0, q_goal)."""
+
+    def __init__(self, T: int = 30, dt: float = 0.05, u_max: float = 1e3):
+        model = pin.Model()
+        j = model.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "turn")
+        model.appendBodyToJoint(j, pin.Inertia.FromSphere(1.0, 0.1), pin.SE3(np.eye(3), np.array([0.5, 0.0, 0.0])))
+        self.model, self.name, self.T, self.dt = model, "free-spin", T, dt
+        super().__init__()
+        self.nu, self.n_xi = 1, 3
+        self.u_lb, self.u_ub = np.array([-u_max]), np.array([u_max])
+
+    def sample_xi(self, rng):
+        return np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1)])
+
+    def initial_state(self, xi):
+        return np.asarray(xi[:2], dtype=float).copy()
+
+    def naive_guess(self, xi):
+        return np.zeros((self.T + 1, 2)), np.zeros((self.T, 1))
+
+    def _running_cost(self, x, u, xi):
+        return self.dt * 0.5 * (10 * (x[0] - xi[2]) ** 2 + x[1] ** 2 + 0.1 * u[0] ** 2)
+
+    def _terminal_cost(self, x, xi):
+        return 0.5 * (10 * (x[0] - xi[2]) ** 2 + x[1] ** 2)
+
+    def goal_distance(self, x, xi):
+        return float(abs(x[0] - xi[2]))
+
+
+def _lqr(task: FreeSpin, xi):
+    """Independent discrete LQR on the exact linear model (A, B from one step of the dynamics)."""
+    dt, inertia = task.dt, task.model.inertias[1].inertia[2, 2] + 1.0 * 0.5 ** 2
+    A = np.array([[1.0, dt], [0.0, 1.0]])
+    B = np.array([[dt * dt / inertia], [dt / inertia]])
+    Q, R, QT = dt * np.diag([10.0, 1.0]), dt * np.array([[0.1]]), np.diag([10.0, 1.0])
+    P, Ks = QT, []
+    for _ in range(task.T):
+        K = -np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        P = Q + A.T @ P @ (A + B @ K)
+        Ks.append(K)
+    return A, B, np.array(Ks[::-1])
+
+
+def test_one_iteration_solves_a_linear_quadratic_problem_with_the_lqr_gains():
+    task = FreeSpin()
+    A, B, K_lqr = _lqr(task, None)
+    xi = np.array([0.7, -0.3, -0.5])
+    X0, U0 = task.naive_guess(xi)
+    # the casadi step is the linear model we wrote down (semi-implicit Euler without gravity)
+    np.testing.assert_allclose(task.step(np.array([0.2, 0.1]), np.array([0.3])),
+                               A @ [0.2, 0.1] + B @ [0.3], atol=1e-14)
+    res = DDPSolver(task, jit=False).solve(xi, X0, U0)
+    assert res.converged and res.iterations == 1, res.status      # one Newton step is exact on an LQ problem
+    np.testing.assert_allclose(res.K, K_lqr, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(res.Phi, A + B @ res.K, atol=1e-12)
+    # the trajectory is the closed-loop LQR one around the goal (affine: states relative to (q_goal, 0)), to the
+    # 1e-9 regularization of Quu (R = 5e-3 here)
+    x = res.X[0] - [xi[2], 0.0]
+    for t in range(task.T):
+        u = K_lqr[t] @ x
+        np.testing.assert_allclose(res.U[t], u, rtol=1e-6, atol=1e-9)
+        x = A @ x + B @ u
+
+
+def test_box_qp_matches_casadis_qp_solver_with_its_active_set():
+    rng = np.random.default_rng(0)
+    n, m = 40, 4
+    M = rng.normal(size=(n, m, m))
+    H = M @ M.transpose(0, 2, 1) + 0.1 * np.eye(m)
+    g = rng.normal(size=(n, m)) * 3
+    lo, hi = -rng.uniform(0.05, 1.0, (n, m)), rng.uniform(0.05, 1.0, (n, m))
+    x, free, ok = box_qp(H, g, lo, hi)
+    assert ok.all()
+    n_active = 0
+    for i in range(n):
+        qp = ca.conic("q", "qpoases", {"h": ca.DM(H[i]).sparsity(), "a": ca.Sparsity(0, m)},
+                      {"printLevel": "none", "error_on_fail": True})
+        ref = np.asarray(qp(h=H[i], g=g[i], lbx=lo[i], ubx=hi[i])["x"]).ravel()
+        np.testing.assert_allclose(x[i], ref, atol=1e-8)
+        at_bound = np.isclose(ref, lo[i], atol=1e-9) | np.isclose(ref, hi[i], atol=1e-9)
+        assert np.array_equal(~free[i], at_bound), i
+        n_active += at_bound.sum()
+    assert 20 < n_active < n * m        # the random problems exercise both free and clamped coordinates
+
+
+def _naive_batch(task, n, seed=0):
+    xis = np.array([sample_xi(task, seed, i) for i in range(n)])
+    guesses = [task.naive_guess(x) for x in xis]
+    return (xis, np.array([task.initial_state(x) for x in xis]), np.array([g[0] for g in guesses]),
+            np.array([g[1] for g in guesses]))
+
+
+@pytest.mark.parametrize("name,n", [("pendulum", 4), ("double_pendulum", 3)])
+def test_converged_solutions_are_local_optima_of_the_multiple_shooting_ocp(name, n):
+    task = get_task(name)
+    xis, x0, X0, U0 = _naive_batch(task, n)
+    results = DDPSolver(task).solve_batch(x0, xis, X0, U0)
+    fatrop = get_solver(task)
+    for r in results:
+        assert r.converged and r.solver == "ddp" and r.max_violation <= 1e-8, r.status
+        np.testing.assert_allclose(r.X[0], r.x0)
+        assert np.all(r.U <= task.u_ub + 1e-12) and np.all(r.U >= task.u_lb - 1e-12)
+        warm = fatrop.solve(r.xi, r.X, r.U)
+        assert warm.converged and abs(warm.cost - r.cost) <= 1e-6 * abs(r.cost), (warm.cost, r.cost)
+    # batched = one by one (an instance's iterates do not depend on its batch)
+    one = DDPSolver(task).solve(xis[1], X0[1], U0[1])
+    assert one.iterations == results[1].iterations and np.allclose(one.X, results[1].X, atol=1e-12)
+    assert results[0].batch_wall_time >= sum(r.solve_time for r in results) - 1e-9
+
+
+def test_gains_are_the_finite_differences_of_re_solves():
+    """K_0 = du_0/dx_0 of a DDP solution (pendulum): central differences of re-solves from perturbed initial
+    states, warm-started at the DDP solution (IPOPT at tol 1e-10: the DDP's stopping rule bounds the reduced
+    gradient, not u, so its own re-solves are less precise than the difference needs)."""
+    task = get_task("pendulum")
+    xis, x0, X0, U0 = _naive_batch(task, 1, seed=3)
+    res = DDPSolver(task, tol=1e-20).solve_from(x0[0], xis[0], X0[0], U0[0])
+    assert res.converged and np.all(np.isfinite(res.K)) and not res.clamped[0].any()
+    precise = get_solver(task, solver="ipopt", tol=1e-10)
+    eps = 1e-4
+    fd = np.zeros((task.nu, task.ndx))
+    for j in range(task.ndx):
+        e = np.zeros(task.nx)
+        e[j] = eps
+        up = precise.solve_from(x0[0] + e, xis[0], res.X, res.U)
+        dn = precise.solve_from(x0[0] - e, xis[0], res.X, res.U)
+        assert up.converged and dn.converged
+        fd[:, j] = (up.U[0] - dn.U[0]) / (2 * eps)
+    np.testing.assert_allclose(res.K[0], fd, rtol=1e-4)
+    ref = precise.solve(xis[0], X0[0], U0[0])
+    assert abs(ref.cost - res.cost) < 1e-8 * res.cost
+    np.testing.assert_allclose(res.K, ref.K, rtol=1e-4, atol=1e-4 * np.abs(ref.K).max())
+
+
+def test_refusals_and_non_convergence_are_reported():
+    with pytest.raises(SdpError, match="state constraints"):
+        DDPSolver(get_task("quadrotor-0"))
+    task = get_task("double_pendulum")
+    xis, x0, X0, U0 = _naive_batch(task, 2)
+    capped = DDPSolver(task, max_iter=2).solve_batch(x0, xis, X0, U0)
+    assert all(not r.converged and r.iterations == 2 and "2 iterations" in r.status for r in capped)
+    assert all(np.isnan(r.K).all() for r in capped)
+    bad = U0.copy()
+    bad[1, 3] = np.nan
+    out = DDPSolver(task, max_iter=2).solve_batch(x0, xis, X0, bad)
+    assert out[1].iterations == 0 and "non-finite guess" in out[1].status and out[0].iterations == 2
+
+
+@pytest.mark.slow
+def test_ur5_solutions_are_fatrops_local_optima():
+    task = get_task("ur5-fixed")
+    xis, x0, X0, U0 = _naive_batch(task, 2)
+    fatrop = get_solver(task)
+    for r in DDPSolver(task).solve_batch(x0, xis, X0, U0):
+        assert r.converged, r.status
+        warm = fatrop.solve(r.xi, r.X, r.U)
+        assert warm.converged and abs(warm.cost - r.cost) <= 1e-6 * abs(r.cost)
