@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 import typer
 
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
-                                 WorkersOpt, clean_errors, int_list, method_help, set_threads, task_help)
+                                 ToOpt, WorkersOpt, clean_errors, int_list, method_help, set_threads, task_help)
 from sdp_cli.errors import SdpError
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
@@ -70,6 +70,7 @@ def collect_cmd(
     policy: Annotated[Optional[Path], typer.Option(help="Warm-start TO with this policy's rollouts and keep the better of policy-guess and naive-guess solves (Algorithm 1, lines 3-8).")] = None,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="With --policy: actions played per prediction.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
+    to: ToOpt = "ms",
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
     threads: ThreadsOpt = 1,
@@ -85,7 +86,7 @@ def collect_cmd(
     config = CollectConfig(task=task, n_traj=n_traj, seed=seed, max_iter=max_iter, max_attempts=max_attempts,
                            policy=str(policy) if policy else None,
                            policy_fingerprint=policy_fingerprint(policy) if policy else None,
-                           t_a=t_a, k_rollout=k_rollout)
+                           t_a=t_a, k_rollout=k_rollout, to=to)
     out = out or Path("data") / f"{task}-n{n_traj}-s{seed}.npz"
     status(f"{task}: loading the optimizer in each worker (compiled with gcc on first use: minutes for the "
            f"larger tasks, then cached)", progress)
@@ -131,7 +132,8 @@ def refine_cmd(
     out: Annotated[Path, typer.Option(help="Dataset artifact to write (.npz), same format as `sdp collect`.")],
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
-    single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Also report the second TO baseline, single shooting solved by IPOPT (the paper's DDP family), from the policy's and the naive controls (not kept in the dataset).")] = False,
+    single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Also report a second NLP baseline, single shooting solved by IPOPT, from the policy's and the naive controls (not kept in the dataset).")] = False,
+    to: ToOpt = "ms",
     workers: WorkersOpt = None,
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
@@ -145,7 +147,7 @@ def refine_cmd(
         raise SdpError(f"--workers must be > 0, got {workers}")
     with count_progress("refine (instances)", None, progress) as on_done:
         path, s = refine(rollouts, out, max_iter=max_iter, baseline=baseline, single_shooting=single_shooting,
-                         workers=workers, executor=executor, scheduler=scheduler, progress=on_done)
+                         workers=workers, executor=executor, scheduler=scheduler, progress=on_done, to=to)
     typer.echo(f"wrote {path}: {s.kept}/{s.n} converged, policy guess won {s.policy_wins} "
                f"(tied {s.policy_ties}); "
                f"mean iterations {s.mean_pol_iterations:.1f} (policy) vs {s.mean_base_iterations:.1f} (naive), "
@@ -269,6 +271,7 @@ def loop_cmd(
     test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
+    to: ToOpt = "ms",
     workers: WorkersOpt = None,
     device: DeviceOpt = "auto",
     executor: ExecutorOpt = None,
@@ -299,7 +302,7 @@ def loop_cmd(
                      test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
                      train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine,
-                     save_at=int_list(save_at, "--save-at"))
+                     save_at=int_list(save_at, "--save-at"), to=to)
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

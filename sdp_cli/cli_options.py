@@ -65,6 +65,8 @@ _EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; defau
 _SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."
 #: options shared by the commands that solve, train or roll out: declared once here
 WorkersOpt = Annotated[Optional[int], typer.Option(help="Solver worker processes (default: all cores).")]
+ToOpt = Annotated[str, typer.Option("--to", help="TO family: ms (multiple shooting, fatrop; ours) or ddp (box-FDDP, "
+                                                 "the paper's family; tasks without state constraints).")]
 ExecutorOpt = Annotated[Optional[str], typer.Option(help=_EXECUTOR_HELP)]
 SchedulerOpt = Annotated[Optional[str], typer.Option(help=_SCHEDULER_HELP)]
 DeviceOpt = Annotated[str, typer.Option(help="auto (CUDA when present, else CPU), cpu or cuda.")]

@@ -49,11 +49,15 @@ class CollectConfig:
     policy_fingerprint: str | None = None
     t_a: int | None = None
     k_rollout: int | None = None
+    #: the TO family (sdp_cli.trajopt.TO_FAMILIES): "ms" (fatrop) or "ddp" (box-FDDP, the paper's)
+    to: str = "ms"
 
     def __post_init__(self):
         from sdp_cli.seeds import check_seed
+        from sdp_cli.trajopt import check_to
 
         check_seed(self.seed)
+        check_to(self.to)
         if self.n_traj <= 0:
             raise SdpError(f"n_traj must be > 0, got {self.n_traj}")
         if self.max_iter <= 0:
@@ -69,6 +73,8 @@ class CollectConfig:
         """The part of the config that partial results must agree on (not the caps)."""
         ident = {"task": self.task, "seed": self.seed, "max_iter": self.max_iter,
                  "task_options": dict(sorted(self.task_options.items()))}
+        if self.to != "ms":   # (partial results of collections made before --to existed stay valid)
+            ident["to"] = self.to
         if self.policy is not None:
             ident.update(policy=self.policy_fingerprint, t_a=self.t_a, k_rollout=self.k_rollout)
         return ident
@@ -94,7 +100,7 @@ class _Jobs:
     def make(self, indices: list[int]) -> list[tuple[Callable, tuple]]:
         c = self.config
         if self.policy is None:
-            return [(solve_index, (c.task, c.task_options, c.seed, i, c.max_iter)) for i in indices]
+            return [(solve_index, (c.task, c.task_options, c.seed, i, c.max_iter, c.to)) for i in indices]
         import torch
 
         from sdp_cli.rollout import instance_generators, rollout_policy
@@ -103,7 +109,7 @@ class _Jobs:
         with torch.no_grad():
             traj = rollout_policy(self.policy, xis, self.rcfg,
                                   generators=instance_generators(c.seed, indices))
-        return [(refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter))
+        return [(refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter, c.to))
                 for k, i in enumerate(indices)]
 
 
@@ -270,6 +276,9 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     if out.exists() and out.is_dir():
         raise SdpError(f"--out {out} is a directory; give a file path such as {out}/dataset.npz")
     task = get_task(config.task, **config.task_options)  # validates the name early
+    from sdp_cli.trajopt import check_to
+
+    check_to(config.to, task)
     if not isinstance(executor, Executor):
         check_executor_options(executor, workers, scheduler)  # bad options fail before any work
     jobs = _Jobs(config, task)   # loads and checks the policy before anything is written
@@ -300,7 +309,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
         try:
             described = ex.describe()
             # the casadi problem is built once per worker process (inherited by forked pool workers)
-            ex.warm(warm_solver, config.task, config.task_options, config.max_iter)
+            ex.warm(warm_solver, config.task, config.task_options, config.max_iter, config.to)
             _run(ex, jobs, task, config, done, update)
         finally:
             if own:

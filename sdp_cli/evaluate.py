@@ -147,6 +147,8 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         best = np.where(d["inst_winner"] == 0, d["inst_pol_cost"],
                         np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))
         row.update({
+            # the TO family of the refinement and of TO alone (sdp_cli.trajopt.TO_FAMILIES; before --to: ms)
+            "to": (dmeta.get("config") or {}).get("to", "ms"),
             # the paper's "refined": TO warm-started by the policy's rollout (Algorithm 1 line 7)
             "refined_cost_mean": _mean(np.where(pol_ok, d["inst_pol_cost"], np.nan)),
             "refined_converged_rate": float(np.mean(pol_ok)),

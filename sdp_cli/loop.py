@@ -60,6 +60,7 @@ class LoopConfig:
     single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
     eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
     save_at: tuple = ()            # extra epoch counts (< epochs) whose checkpoints are evaluated too (Fig. 1)
+    to: str = "ms"                 # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
 
     def __post_init__(self):
         from sdp_cli.seeds import check_loop_seed, check_seed
@@ -87,6 +88,9 @@ class LoopConfig:
         from sdp_cli.tasks import get_task
 
         task = get_task(self.task)
+        from sdp_cli.trajopt import check_to
+
+        check_to(self.to, task)
         if self.max_iter <= 0:
             raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
         try:
@@ -215,7 +219,7 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
             new_work += 1
             with count_progress(f"refine {tag} (instances)", None, progress) as on_done:
                 refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
-                       executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done)
+                       executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done, to=cfg.to)
         rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
         artifacts.append(evaluation_artifacts(ro, rf if cfg.eval_refine else None))
     df = pd.DataFrame(rows)
@@ -256,7 +260,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                                  policy=str(prev_policy) if prev_policy else None,
                                  policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
                                  t_a=cfg.t_a if prev_policy else None,
-                                 k_rollout=cfg.k_rollout if prev_policy else None)
+                                 k_rollout=cfg.k_rollout if prev_policy else None, to=cfg.to)
             from sdp_cli.progress import collect_progress
 
             with collect_progress(ccfg.n_traj, progress) as on_update:

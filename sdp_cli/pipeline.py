@@ -101,7 +101,7 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
         eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
         test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
         train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
-        save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]))
+        save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]), to=g["to"])
 
 
 def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: Path = Path(".")) -> dict:

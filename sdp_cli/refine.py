@@ -40,7 +40,7 @@ class RefineStats:
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
            baseline: bool = True, single_shooting: bool = False, workers: int | None = None,
            progress: Callable[[int], None] | None = None, executor: "str | Executor" = "local",
-           scheduler: str | None = None) -> tuple[Path, RefineStats]:
+           scheduler: str | None = None, to: str = "ms") -> tuple[Path, RefineStats]:
     """Refine every rollout of an artifact; write a dataset artifact to ``out``.
 
     ``progress(done, n)`` is called after each instance. ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``
@@ -63,6 +63,9 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
     check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")
+    from sdp_cli.trajopt import check_to
+
+    check_to(to, task)
     n = len(arrays["xi"])
     own = not isinstance(executor, Executor)
     if own and not scheduler:
@@ -73,9 +76,9 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     ex = make_executor(executor, workers, scheduler) if own else executor
     try:
         described = ex.describe()
-        ex.warm(warm_solver, task_name, task_options, max_iter)  # once per worker process
+        ex.warm(warm_solver, task_name, task_options, max_iter, to)  # once per worker process
         argsets = [(task_name, task_options, arrays["xi"][i], arrays["X"][i], arrays["U"][i], max_iter, baseline,
-                    single_shooting) for i in range(n)]
+                    single_shooting, to) for i in range(n)]
         for i, res in ex.imap_unordered(refine_instance, argsets):
             recs[i] = res.value if res.ok else failed_record(arrays["xi"][i], error_status(res.error))
             if progress:
@@ -105,7 +108,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     path = save_npz(out, out_arrays, kind="dataset",
                     config={"rollouts": str(rollouts), "rollouts_sha256": file_sha256(rollouts),
                             "max_iter": max_iter, "baseline": baseline, "single_shooting": single_shooting,
-                            "workers": described.get("workers"),
+                            "to": to, "workers": described.get("workers"),
                             "executor": described, "rollout_config": meta.get("config", {})},
                     task=task_name, task_params=task.params(), task_options=task_options, dims=dims,
                     source="refine", stats=meta_stats, timing={**timing, **stats_timing})

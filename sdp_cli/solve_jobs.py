@@ -24,12 +24,12 @@ def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
     return task.sample_xi(np.random.default_rng([int(seed), int(index)]))
 
 
-def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int) -> dict:
-    """Solve instance ``index`` from the naive guess; a dict of arrays (picklable)."""
-    from sdp_cli.trajopt import get_solver
+def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int, to: str = "ms") -> dict:
+    """Solve instance ``index`` from the naive guess with TO family ``to``; a dict of arrays (picklable)."""
+    from sdp_cli.trajopt import get_to_solver
 
     task = get_task(task_name, **task_options)
-    solver = get_solver(task, max_iter=max_iter)
+    solver = get_to_solver(task, to, max_iter=max_iter)
     xi = sample_xi(task, seed, index)
     X0, U0 = task.naive_guess(xi)
     res = solver.solve(xi, X0, U0)
@@ -40,17 +40,17 @@ def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_i
     return out
 
 
-def refine_index(task_name, task_options, index, xi, X_pol, U_pol, max_iter) -> dict:
-    rec = refine_instance(task_name, task_options, xi, X_pol, U_pol, max_iter, baseline=True)
+def refine_index(task_name, task_options, index, xi, X_pol, U_pol, max_iter, to: str = "ms") -> dict:
+    rec = refine_instance(task_name, task_options, xi, X_pol, U_pol, max_iter, baseline=True, to=to)
     rec["index"] = np.asarray(index)
     return {k: np.asarray(v) for k, v in rec.items()}
 
 
-def warm_solver(task_name: str, task_options: dict, max_iter: int) -> int:
-    """Build (or reuse) this process's solver of the task; the process's build count."""
-    from sdp_cli.trajopt import build_count, get_solver
+def warm_solver(task_name: str, task_options: dict, max_iter: int, to: str = "ms") -> int:
+    """Build (or reuse) this process's solver of the task; the process's build count (NLP solvers)."""
+    from sdp_cli.trajopt import build_count, get_to_solver
 
-    get_solver(get_task(task_name, **task_options), max_iter=max_iter)
+    get_to_solver(get_task(task_name, **task_options), to, max_iter=max_iter)
     return build_count()
 
 
@@ -99,15 +99,16 @@ def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_i
 
 
 def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
-                    U_pol: np.ndarray, max_iter: int, baseline: bool, single_shooting: bool = False) -> dict:
-    """Solve one instance from the policy guess (and the naive guess); picklable dict out.
+                    U_pol: np.ndarray, max_iter: int, baseline: bool, single_shooting: bool = False,
+                    to: str = "ms") -> dict:
+    """Solve one instance from the policy guess (and the naive guess) with TO family ``to``; picklable dict out.
 
     ``single_shooting``: also solve both with the single-shooting baseline (``ss_*`` records; reported,
     never kept in the dataset)."""
-    from sdp_cli.trajopt import get_solver
+    from sdp_cli.trajopt import get_to_solver
 
     task = get_task(task_name, **task_options)
-    solver = get_solver(task, max_iter=max_iter)
+    solver = get_to_solver(task, to, max_iter=max_iter)
     U_pol = np.clip(U_pol, task.u_lb, task.u_ub)
     # a diverged rollout (non-finite, or cost above the rollout's divergence threshold) is no
     # guess: solving from states of 1e7 wastes the iteration budget at best, and fatrop's line

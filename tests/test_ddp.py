@@ -179,3 +179,31 @@ def test_ur5_solutions_are_fatrops_local_optima():
         assert r.converged, r.status
         warm = fatrop.solve(r.xi, r.X, r.U)
         assert warm.converged and abs(warm.cost - r.cost) <= 1e-6 * abs(r.cost)
+
+
+def test_loop_with_ddp_as_its_to_runs_end_to_end(tmp_path):
+    """`sdp loop --to ddp`: collection, refinement and TO alone by box-FDDP; the evaluation says so per row and
+    the dataset's gains are finite (an SDP policy trains on them)."""
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli import app
+    from sdp_cli.data.artifacts import load_npz
+    import pandas as pd
+
+    out = tmp_path / "loop"
+    r = CliRunner().invoke(app, ["loop", "--task", "pendulum", "--method", "sdp", "--to", "ddp", "--n-traj", "2",
+                                 "--epochs", "2", "--n-test", "2", "--horizon", "16", "--workers", "1",
+                                 "--no-progress", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    arrays, meta = load_npz(out / "it0" / "data.npz", kind="dataset")
+    assert meta["config"]["to"] == "ddp" and arrays["converged"].all() and np.isfinite(arrays["K"]).all()
+    ev = pd.read_csv(out / "it0" / "eval" / "eval.csv")
+    assert list(ev["to"]) == ["ddp"]
+    refined, _ = load_npz(next((out / "it0" / "eval").glob("refined_*.npz")), kind="dataset")
+    task = get_task("pendulum")
+    xi = refined["inst_xi"][0]
+    alone = DDPSolver(task).solve(xi, *task.naive_guess(xi))         # TO alone is the DDP from the naive guess
+    assert refined["inst_base_cost"][0] == pytest.approx(alone.cost, rel=1e-12)
+    r = CliRunner().invoke(app, ["collect", "--task", "quadrotor-0", "--to", "ddp", "--n-traj", "1",
+                                 "--out", str(tmp_path / "q.npz")])
+    assert r.exit_code == 1 and "state constraints" in r.output and not (tmp_path / "q.npz").exists()

@@ -46,7 +46,8 @@ def test_shared_options_are_declared_once():
     command that has them (one Annotated alias each in sdp_cli.cli)."""
     groups = {"workers": ("collect", "refine", "loop"), "executor": ("collect", "refine", "loop"),
               "scheduler": ("collect", "refine", "loop"), "device": ("train", "rollout", "loop"),
-              "threads": ("collect", "train", "rollout", "loop"), "progress": ("collect", "refine", "train", "loop")}
+              "threads": ("collect", "train", "rollout", "loop"), "progress": ("collect", "refine", "train", "loop"),
+              "to": ("collect", "refine", "loop")}
     for opt, commands in groups.items():
         decls = {(tuple(_params(c)[opt].opts), _params(c)[opt].help, _params(c)[opt].default) for c in commands}
         assert len(decls) == 1, (opt, decls)

@@ -7,10 +7,38 @@
 
 ``res.K (T, nu, ndx)`` are the feedback gains du_t/dx_t, ``res.A, res.B`` the tangent-space
 dynamics Jacobians and ``res.Phi = A + B K`` the closed-loop dx_{t+1}/dx_t.
+
+TO families (``--to``): ``ms`` (ours: multiple shooting, fatrop; :func:`get_solver`) and ``ddp`` (the paper's:
+box-FDDP, :mod:`sdp_cli.trajopt.ddp`); :func:`get_to_solver` returns either with the same ``solve`` API.
 """
 
 from sdp_cli.trajopt.solver import (DEFAULT_MAX_ITER, DEFAULT_SOLVER, SOLVERS, SolveResult, TrajOptSolver,
                                     build_count, get_solver)
 
-__all__ = ["get_solver", "SolveResult", "TrajOptSolver", "SOLVERS", "DEFAULT_SOLVER", "DEFAULT_MAX_ITER",
+#: the TO families: multiple shooting (fatrop) and box-FDDP
+TO_FAMILIES = ("ms", "ddp")
+
+
+def check_to(to: str, task=None) -> None:
+    """One clear error for an unknown family, or a task the family cannot solve (before any work)."""
+    from sdp_cli.errors import SdpError
+
+    if to not in TO_FAMILIES:
+        raise SdpError(f"--to must be one of {', '.join(TO_FAMILIES)}; got {to!r}")
+    if to == "ddp" and task is not None and (task.n_h or task.nx != task.ndx):
+        raise SdpError(f"--to ddp: task {task.name!r} has state constraints or a configuration manifold, which the "
+                       "DDP solver does not handle yet (its augmented-Lagrangian loop is not built); use --to ms")
+
+
+def get_to_solver(task, to: str = "ms", max_iter: int = DEFAULT_MAX_ITER):
+    """The solver of TO family ``to`` for ``task`` (cached per process)."""
+    check_to(to, task)
+    if to == "ddp":
+        from sdp_cli.trajopt.ddp import get_ddp_solver
+
+        return get_ddp_solver(task, max_iter=max_iter)
+    return get_solver(task, max_iter=max_iter)
+
+
+__all__ = ["get_to_solver", "check_to", "TO_FAMILIES", "get_solver", "SolveResult", "TrajOptSolver", "SOLVERS", "DEFAULT_SOLVER", "DEFAULT_MAX_ITER",
            "build_count"]

@@ -60,13 +60,17 @@ ACCEPT, ACCEPT_NEG = 0.1, 2.0
 ALPHAS = tuple(2.0 ** -np.arange(11))
 
 
-def ddp_functions(task) -> list[ca.Function]:
-    """The SX functions box-FDDP evaluates (ambient = tangent coordinates here):
+def ddp_functions(task, T: int) -> list[ca.Function]:
+    """The functions box-FDDP evaluates (ambient = tangent coordinates here):
 
     - ``sdp_ddp_stage(x, u, xi) -> (f, A, B, l, l_x, l_u, l_xx, l_uu, l_ux)``
     - ``sdp_ddp_term(x, xi) -> (l_T, l_Tx, l_Txx)``
-    - ``sdp_ddp_step(x, u) -> f``, ``sdp_ddp_cost(x, u, xi) -> l``
+    - ``sdp_ddp_step(x, u) -> f``
     - ``sdp_ddp_hess(x, u, xi, lam) -> d^2/d(x,u)^2 [l - lam' f]`` (the exact Hessian of the gains)
+    - ``sdp_ddp_roll_T<T>(x^_0, U, k, K, X, gaps, alpha, xi) -> (X^_{1..T} (nx, T), U^ (nu, T), cost)``: the
+      forward pass of one step ``alpha`` as one call (a casadi ``mapaccum`` over t: a loop in the generated
+      code), stages horizontally stacked, ``K_t`` as ``vec(K_t)`` (column-major), ``gaps`` = ``fbar_{1..T}``
+    - ``sdp_ddp_riccati_T<T>``: :func:`sdp_cli.trajopt.gains.riccati_function` (the gains' recursion)
     """
     x, u, xi = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
     lam = ca.SX.sym("lam", task.nx)
@@ -79,10 +83,27 @@ def ddp_functions(task) -> list[ca.Function]:
                          ca.hessian(l_run, x)[0], ca.hessian(l_run, u)[0], ca.jacobian(lu, x)])
     term = ca.Function("sdp_ddp_term", [x, xi], [l_T, ca.gradient(l_T, x), ca.hessian(l_T, x)[0]])
     step = ca.Function("sdp_ddp_step", [x, u], [f])
-    cost = ca.Function("sdp_ddp_cost", [x, u, xi], [l_run])
     z = ca.vertcat(x, u)
     hess = ca.Function("sdp_ddp_hess", [x, u, xi, lam], [ca.hessian(l_run - ca.dot(lam, f), z)[0]])
-    return [stage, term, step, cost, hess]
+    # one closed-loop step of the forward pass, accumulated over t
+    xh, u_old, k, Kv, x_old, gap = (ca.SX.sym(nm, d) for nm, d in (("xh", task.nx), ("u_old", task.nu),
+                                    ("k", task.nu), ("K", task.nu * task.nx), ("x_old", task.nx), ("gap", task.nx)))
+    alpha = ca.SX.sym("alpha")
+    uh = u_old + alpha * k + ca.mtimes(ca.reshape(Kv, task.nu, task.nx), xh - x_old)
+    uh = ca.fmin(ca.fmax(uh, ca.DM(task.u_lb)), ca.DM(task.u_ub))
+    closed = ca.Function("sdp_ddp_closed", [xh, u_old, k, Kv, x_old, gap, alpha, xi],
+                         [task.f_step(xh, uh) - (1 - alpha) * gap, uh, task.f_running_cost(xh, uh, xi)])
+    acc = closed.mapaccum("sdp_ddp_acc", T)
+    x0h = ca.SX.sym("x0h", task.nx)
+    Us, ks, Ks = ca.SX.sym("U", task.nu, T), ca.SX.sym("k", task.nu, T), ca.SX.sym("Kv", task.nu * task.nx, T)
+    Xs, gs = ca.SX.sym("X", task.nx, T), ca.SX.sym("gaps", task.nx, T)
+    Xn, Un, ls = acc(x0h, Us, ks, Ks, Xs, gs, ca.repmat(alpha, 1, T), ca.repmat(xi, 1, T))
+    roll = ca.Function(f"sdp_ddp_roll_T{T}", [x0h, Us, ks, Ks, Xs, gs, alpha, xi],
+                       [Xn, Un, ca.sum2(ls) + task.f_terminal_cost(Xn[:, -1], xi)])
+    riccati = _gains.riccati_function(task.ndx, task.nu, T)
+    args = riccati.mx_in()
+    riccati = ca.Function(f"sdp_ddp_riccati_T{T}", args, riccati.call(args))
+    return [stage, term, step, hess, roll, riccati]
 
 
 def _cols(M, n: int, rows: int, cols: int) -> np.ndarray:
@@ -108,12 +129,13 @@ class DDPSolver:
         if self.T < 1 or int(max_iter) < 0 or not tol > 0:
             raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
         self.max_iter, self.tol = int(max_iter), float(tol)
-        funcs = ddp_functions(task)
+        funcs = ddp_functions(task, self.T)
         jit = jit_enabled_by_default() if jit is None else bool(jit)
         lib = None
         if jit:
             family = getattr(task, "compile_family", None) or task.name
-            lib = compile_functions("sdp_ddp_" + "".join(c if c.isalnum() else "_" for c in family), funcs)
+            lib = compile_functions("sdp_ddp_" + "".join(c if c.isalnum() else "_" for c in family) + f"_T{self.T}",
+                                    funcs)
         self._f = {f.name(): (ca.external(f.name(), lib) if lib is not None else f) for f in funcs}
         self.jitted = lib is not None
         self._maps: dict = {}
@@ -145,14 +167,6 @@ class DDPSolver:
         d["lT"], d["lTx"], d["lTxx"] = np.asarray(lT).ravel(), np.asarray(lTx).T, _cols(lTxx, n, nx, nx)
         d["J"] = d["l"].sum(1) + d["lT"]
         return d
-
-    def _cost(self, X, U, xi) -> np.ndarray:
-        n, T = len(X), self.T
-        m = n * T
-        l = np.asarray(self._map("sdp_ddp_cost", m)(X[:, :-1].reshape(m, -1).T, U.reshape(m, -1).T,
-                                                    np.repeat(xi, T, axis=0).T)).reshape(n, T)
-        lT = np.asarray(self._map("sdp_ddp_term", n)(X[:, -1].T, xi.T)[0]).ravel()
-        return l.sum(1) + lT
 
     # ------------------------------------------------------------------ backward pass
     def _backward(self, d, gaps, U, reg):
@@ -215,19 +229,19 @@ class DDPSolver:
         d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
         return d1, d2
 
-    def _rollout(self, X, U, gaps, k, K, alpha):
-        """The forward pass of a step ``alpha (n,)``: ``(X^, U^)``."""
+    def _rollout(self, X, U, gaps, k, K, alpha, xi):
+        """The forward pass of a step ``alpha (n,)`` (one compiled call): ``(X^, U^, cost (n,))``."""
         task, T = self.task, self.T
-        n = len(X)
-        a = alpha[:, None]
-        Xn, Un = np.empty_like(X), np.empty_like(U)
-        Xn[:, 0] = X[:, 0] + a * gaps[:, 0]
-        step = self._map("sdp_ddp_step", n)
-        for t in range(T):
-            Un[:, t] = np.clip(U[:, t] + a * k[:, t] + np.einsum("nij,nj->ni", K[:, t], Xn[:, t] - X[:, t]),
-                               task.u_lb, task.u_ub)
-            Xn[:, t + 1] = np.asarray(step(Xn[:, t].T, Un[:, t].T)).T - (1 - a) * gaps[:, t + 1]
-        return Xn, Un
+        n, nx, nu = len(X), task.nx, task.nu
+        x0h = X[:, 0] + alpha[:, None] * gaps[:, 0]
+        Kv = K.transpose(0, 1, 3, 2).reshape(n * T, nu * nx).T          # vec(K_t), column-major
+        Xn, Un, J = self._map(f"sdp_ddp_roll_T{T}", n)(
+            x0h.T, U.reshape(n * T, nu).T, k.reshape(n * T, nu).T, Kv, X[:, :-1].reshape(n * T, nx).T,
+            gaps[:, 1:].reshape(n * T, nx).T, alpha[None], xi.T)
+        Xh = np.empty_like(X)
+        Xh[:, 0] = x0h
+        Xh[:, 1:] = np.asarray(Xn).T.reshape(n, T, nx)
+        return Xh, np.asarray(Un).T.reshape(n, T, nu), np.asarray(J).ravel()
 
     # ------------------------------------------------------------------ solve
     def solve(self, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
@@ -333,8 +347,7 @@ class DDPSolver:
             if not len(p):
                 break
             alpha = np.full(len(p), a)
-            Xn, Un = self._rollout(X[rows[p]], U[rows[p]], g[p], ks[p], Ks[p], alpha)
-            J = self._cost(Xn, Un, xi[rows[p]])
+            Xn, Un, J = self._rollout(X[rows[p]], U[rows[p]], g[p], ks[p], Ks[p], alpha, xi[rows[p]])
             expected = -(a * d1[p] + 0.5 * a * a * d2[p])       # the model's decrease
             actual = J0[p] - J
             good = np.isfinite(J) & np.where(expected >= 0, actual >= ACCEPT * expected, actual >= ACCEPT_NEG * expected)
@@ -357,7 +370,7 @@ class DDPSolver:
         H = _cols(H, T, s, s)
         HT = d["lTxx"][0]
         try:
-            K, _ = _gains.riccati_gains(d["A"][0], d["B"][0], H, HT, res.clamped)
+            K = _gains.riccati_gains_fast(self._f[f"sdp_ddp_riccati_T{T}"], d["A"][0], d["B"][0], H, HT, res.clamped)
             if not np.all(np.isfinite(K)):
                 raise np.linalg.LinAlgError("non-finite gains")
         except np.linalg.LinAlgError as e:
@@ -366,3 +379,17 @@ class DDPSolver:
             res.A, res.B, res.K = d["A"][0], d["B"][0], K
             res.Phi = res.A + res.B @ K
         res.gain_time = time.perf_counter() - t0
+
+
+_CACHE: dict = {}
+
+
+def get_ddp_solver(task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER) -> DDPSolver:
+    """The box-FDDP solver of ``task`` on ``horizon`` (default ``task.T``), built once per process."""
+    import weakref
+
+    per_task = _CACHE.setdefault(id(task), (weakref.ref(task), {}))[1]
+    key = (task.T if horizon is None else int(horizon), int(max_iter))
+    if key not in per_task:
+        per_task[key] = DDPSolver(task, key[0], max_iter=key[1])
+    return per_task[key]
