@@ -1,0 +1,77 @@
+"""Box-FDDP (sdp_cli/trajopt/ddp.py) batched: time per instance against the batch size N and the horizon T,
+where the time goes, and the goal (double pendulum <= 20 ms amortized per instance at N = 50 on 1 thread).
+
+    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200]
+
+Instances: collection seed 0, indices 0..N-1, from the naive guess; the compiled functions are built (and
+cached) before timing. Prints per (T, N): converged, mean / max iterations, batch wall time, amortized ms per
+instance and per instance-iteration; then a profile of the N = max, T = task default batch by phase.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime
+import platform
+import pstats
+import time
+
+import numpy as np
+
+from sdp_cli.solve_jobs import sample_xi
+from sdp_cli.tasks import get_task
+from sdp_cli.trajopt.ddp import DDPSolver
+
+
+def batch(task, n):
+    xis = np.array([sample_xi(task, 0, i) for i in range(n)])
+    guesses = [task.naive_guess(x) for x in xis]
+    return (np.array([task.initial_state(x) for x in xis]), xis, np.array([g[0] for g in guesses]),
+            np.array([g[1] for g in guesses]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="double_pendulum")
+    ap.add_argument("--sizes", default="1,10,50")
+    ap.add_argument("--horizons", default="50,100,200")
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    sizes = [int(s) for s in a.sizes.split(",")]
+    print(f"# bench/ddp.py --task {a.task}, {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, "
+          f"{platform.node()} ({platform.machine()}), 1 thread")
+    print("| T | N | converged | iterations mean / max | batch wall (s) | ms per instance | ms per instance-iteration |")
+    print("|---|---|---|---|---|---|---|")
+    for T in [int(h) for h in a.horizons.split(",")]:
+        task = get_task(a.task, T=T)
+        solver = DDPSolver(task)
+        solver.solve_batch(*[v[:1] for v in batch(task, 1)], gains=False)     # build the maps once
+        for n in sizes:
+            args = batch(task, n)
+            t0 = time.perf_counter()
+            res = solver.solve_batch(*args, gains=False)
+            wall = time.perf_counter() - t0
+            it = np.array([r.iterations for r in res])
+            print(f"| {T} | {n} | {np.mean([r.converged for r in res]):.0%} | {it.mean():.1f} / {it.max()} | "
+                  f"{wall:.2f} | {1000 * wall / n:.1f} | {1000 * wall / max(1, it.sum()):.2f} |", flush=True)
+    task = get_task(a.task)
+    solver = DDPSolver(task)
+    args = batch(task, max(sizes))
+    solver.solve_batch(*[v[:1] for v in args], gains=False)
+    prof = cProfile.Profile()
+    prof.enable()
+    solver.solve_batch(*args, gains=False)
+    prof.disable()
+    st = pstats.Stats(prof)
+    total = max(v[3] for v in st.stats.values())
+    print(f"\nwhere the time goes (T = {task.T}, N = {max(sizes)}; cumulative seconds, share of the batch):")
+    for name in ("_backward", "box_qp", "_line_search", "_rollout", "_derivatives", "_model"):
+        cum = sum(v[3] for k, v in st.stats.items() if k[2] == name)
+        print(f"  {name:14s} {cum:7.3f} s  {cum / total:5.1%}")
+
+
+if __name__ == "__main__":
+    main()
