@@ -106,6 +106,11 @@ def ddp_functions(task, T: int) -> list[ca.Function]:
     return [stage, term, step, hess, roll, riccati]
 
 
+def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Batched matrix-vector product ``(n, i, j), (n, j) -> (n, i)``."""
+    return np.matmul(M, v[..., None])[..., 0]
+
+
 def _cols(M, n: int, rows: int, cols: int) -> np.ndarray:
     """casadi's horizontally stacked map output ``(rows, n cols)`` -> ``(n, rows, cols)``."""
     return np.asarray(M).reshape(rows, n, cols).transpose(1, 0, 2)
@@ -184,31 +189,34 @@ class DDPSolver:
         eye = np.eye(nu)
         for t in reversed(range(T)):
             A, B = d["A"][:, t], d["B"][:, t]
-            Vxp = Vx + np.einsum("nij,nj->ni", Vxx, gaps[:, t + 1])
+            Vxp = Vx + _mv(Vxx, gaps[:, t + 1])
             At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
-            Qx = d["lx"][:, t] + np.einsum("nij,nj->ni", At, Vxp)
-            Qu = d["lu"][:, t] + np.einsum("nij,nj->ni", Bt, Vxp)
+            Qx = d["lx"][:, t] + _mv(At, Vxp)
+            Qu = d["lu"][:, t] + _mv(Bt, Vxp)
             VA, VB = Vxx @ A, Vxx @ B
             Qxx = d["lxx"][:, t] + At @ VA
             Quu = d["luu"][:, t] + Bt @ VB
             Qux = d["lux"][:, t] + Bt @ VA
             Quu_r = 0.5 * (Quu + Quu.transpose(0, 2, 1)) + reg[:, None, None] * eye
-            pd = np.linalg.eigvalsh(Quu_r)[:, 0] > 0
-            ok &= pd
-            Quu_r[~pd] = eye                                         # these instances retry with more reg
+            try:                                                     # positive definite (all at once)
+                np.linalg.cholesky(Quu_r)
+            except np.linalg.LinAlgError:
+                pd = np.linalg.eigvalsh(Quu_r)[:, 0] > 0
+                ok &= pd
+                Quu_r[~pd] = eye                                     # these instances retry with more reg
             lo, hi = task.u_lb - U[:, t], task.u_ub - U[:, t]
-            kt = -np.linalg.solve(Quu_r, Qu[:, :, None])[:, :, 0]
+            sol = -np.linalg.solve(Quu_r, np.concatenate([Qu[:, :, None], Qux], axis=2))
+            kt, Kt = sol[:, :, 0], sol[:, :, 1:]                     # unconstrained step and gain
             free = np.ones((n, nu), dtype=bool)
             out = np.any((kt < lo) | (kt > hi), axis=1)
             if out.any():
                 kb, fb, _ = box_qp(Quu_r[out], Qu[out], lo[out], hi[out], np.clip(kt[out], lo[out], hi[out]))
                 kt[out], free[out] = kb, fb
-            Kt = -free_solve(Quu_r, Qux, free)
+                Kt[out] = -free_solve(Quu_r[out], Qux[out], fb)
             k[:, t], K[:, t], free_all[:, t] = kt, Kt, free
             stop += np.sum(np.where(free, Qu, 0.0) ** 2, axis=1)
             KtT = Kt.transpose(0, 2, 1)
-            Vx = (Qx + np.einsum("nij,nj->ni", KtT, np.einsum("nij,nj->ni", Quu, kt)) + np.einsum("nij,nj->ni", KtT, Qu)
-                  + np.einsum("nji,nj->ni", Qux, kt))
+            Vx = Qx + _mv(KtT, _mv(Quu, kt) + Qu) + _mv(Qux.transpose(0, 2, 1), kt)
             Vxx = Qxx + KtT @ Quu @ Kt + KtT @ Qux + Qux.transpose(0, 2, 1) @ Kt
             Vxx = 0.5 * (Vxx + Vxx.transpose(0, 2, 1))
             Vx_all[:, t] = Vx
@@ -220,11 +228,11 @@ class DDPSolver:
         dx = gaps[:, 0].copy()
         d1, d2 = np.zeros(n), np.zeros(n)
         for t in range(T):
-            du = k[:, t] + np.einsum("nij,nj->ni", K[:, t], dx)
+            du = k[:, t] + _mv(K[:, t], dx)
             d1 += np.einsum("ni,ni->n", d["lx"][:, t], dx) + np.einsum("ni,ni->n", d["lu"][:, t], du)
             d2 += (np.einsum("ni,nij,nj->n", dx, d["lxx"][:, t], dx) + 2 * np.einsum("ni,nij,nj->n", du, d["lux"][:, t], dx)
                    + np.einsum("ni,nij,nj->n", du, d["luu"][:, t], du))
-            dx = np.einsum("nij,nj->ni", d["A"][:, t], dx) + np.einsum("nij,nj->ni", d["B"][:, t], du) + gaps[:, t + 1]
+            dx = _mv(d["A"][:, t], dx) + _mv(d["B"][:, t], du) + gaps[:, t + 1]
         d1 += np.einsum("ni,ni->n", d["lTx"], dx)
         d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
         return d1, d2
