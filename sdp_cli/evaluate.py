@@ -97,6 +97,20 @@ def terminal_cost_mean(r: dict, meta: dict) -> dict[str, float]:
     return {"terminal_cost_mean": float(np.mean(v)) if np.all(np.isfinite(v)) else float("inf")}
 
 
+def _solved_and_reached(rmeta: dict, d: dict, guess: str, ok: np.ndarray) -> float:
+    """Share of instances whose solve from ``guess`` ("pol" or "base") converged and ends within the task's goal
+    tolerance (NaN for an artifact without the per-instance trajectories)."""
+    key = f"inst_{guess}_X"
+    if key not in d or not ok.any():
+        return float(np.mean(ok)) if key in d else float("nan")
+    from sdp_cli.tasks import get_task
+
+    task = get_task(rmeta["task"], **(rmeta.get("task_options") or {}))
+    X, xi = d[key], d["inst_xi"]
+    reached = [bool(ok[i]) and task.goal_distance(X[i, -1], xi[i]) <= task.goal_tolerance for i in range(len(X))]
+    return float(np.mean(reached))
+
+
 def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
@@ -166,6 +180,9 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
             "to_alone_converged_rate": float(np.mean(base_ok)) if np.any(d["inst_base_iterations"] >= 0) else float("nan"),
             "to_alone_iterations_mean": _mean(np.where(d["inst_base_iterations"] >= 0, d["inst_base_iterations"], np.nan)),
             "to_alone_solve_time_mean": _mean(np.where(d["inst_base_iterations"] >= 0, _timed(d, dt, "inst_base_time", m), np.nan)),
+            # the task's success for the TO solutions too: converged and within the goal tolerance at T
+            "refined_success_rate": _solved_and_reached(rmeta, d, "pol", pol_ok),
+            "to_alone_success_rate": _solved_and_reached(rmeta, d, "base", base_ok),
         })
         if "inst_ss_base_converged" in d:   # the single-shooting baseline (sdp refine --single-shooting)
             for g, name in (("base", "ss_to_alone"), ("pol", "ss_refined")):
