@@ -319,6 +319,7 @@ class DDPSolver:
             over = np.flatnonzero(active & (reg > REG_MAX))
             for i in over:
                 status[i] = f"not converged: regularization above {REG_MAX:g} after {iters[i]} iterations"
+                cost[i] = task.cost(X[i], U[i], xi[i])          # a last tiny step may have moved the iterate
             active[over] = False
         wall = time.perf_counter() - t_start
         per_iter = wall / max(1, int(iters.sum()))
