@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 import typer
 
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
-                                 ToOpt, WorkersOpt, clean_errors, int_list, method_help, set_threads, task_help)
+                                 ToOpt, WorkersOpt, forwards_train_options, clean_errors, int_list, method_help, set_threads, task_help)
 from sdp_cli.errors import SdpError
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
@@ -253,6 +253,8 @@ def train_cmd(
 
 
 @app.command("loop")
+@forwards_train_options(train_cmd, loop_owns=("data", "method", "epochs", "out", "seed", "device", "horizon",
+                                              "save_at", "resume", "init", "threads", "progress"))
 @clean_errors
 def loop_cmd(
     task: Annotated[str, typer.Option(help=task_help())],
@@ -276,25 +278,20 @@ def loop_cmd(
     device: DeviceOpt = "auto",
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
-    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's).")] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", help="Batch size B.")] = None,
-    sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: Sobolev weight cap quantile (see `sdp train --help`).")] = None,
-    sobolev_path: Annotated[Optional[str], typer.Option("--sobolev-path", help="sdp: cond (default) or total (see `sdp train --help`).")] = None,
-    sobolev_balance: Annotated[Optional[bool], typer.Option("--sobolev-balance/--no-sobolev-balance", help="Balance the Sobolev term (default on; see `sdp train --help`).", show_default=False)] = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
     save_at: Annotated[Optional[str], typer.Option("--save-at", help="Extra epoch counts whose checkpoints are evaluated too, e.g. 1000 (Fig. 1).")] = None,
     eval_refine: Annotated[bool, typer.Option("--eval-refine/--no-eval-refine", help="Evaluations refine the policy's rollouts (the paper's refined); off: the policy's own metrics only (sweeps).")] = True,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
+    train_options: Optional[dict] = None,
 ) -> None:
-    """Run Algorithm 1 (collect, train, evaluate, repeat); resumable."""
+    """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. Every `sdp train` option that is a training
+    setting (and not one of the loop's own: method, epochs, seed, horizon, save-at) is an option here too."""
     from sdp_cli.loop import LoopConfig, run_loop
     from sdp_cli.train import resolve_device
 
     set_threads(threads)
-    opts = {k: v for k, v in (("alpha_sobolev", alpha_sobolev), ("batch_size", batch_size),
-                              ("sobolev_cap", sobolev_cap), ("sobolev_path", sobolev_path),
-                              ("sobolev_balance", sobolev_balance)) if v is not None}
+    opts = dict(train_options or {})
     cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
                      epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
                      eval_t_a=int_list(eval_t_a, "--eval-t-a"),

@@ -95,3 +95,58 @@ def int_list(value: Optional[str], name: str) -> tuple:
         return tuple(int(v) for v in value.split(","))
     except ValueError:
         raise SdpError(f"{name} must be comma-separated integers, got {value!r}") from None
+
+
+#: `sdp train` parameters whose TrainConfig field has another name, and how their text becomes the field's value
+TRAIN_FIELD = {"horizon": "T_h", "diffusion_steps": "K"}
+
+
+def _int_list_of(flag: str):
+    def parse(text: str) -> list[int]:
+        vals = int_list(text, flag)
+        if not vals or min(vals) <= 0:
+            raise SdpError(f"{flag} must be positive integers, got {text!r}")
+        return list(vals)
+    return parse
+
+
+TRAIN_PARSE = {"down_dims": _int_list_of("--down-dims")}
+
+
+def forwards_train_options(train_cmd: Callable, loop_owns: tuple[str, ...]) -> Callable:
+    """Give a command every option of ``train_cmd`` (``sdp train``) that is not in ``loop_owns``: the same flags and
+    help, default None (TrainConfig's default applies). The wrapped function receives the given ones as
+    ``train_options={TrainConfig field: value}``: a training option is declared once, on ``sdp train``."""
+    import inspect
+    from copy import copy
+
+    def decorate(fn: Callable) -> Callable:
+        forwarded = []
+        for p in inspect.signature(train_cmd, eval_str=True).parameters.values():
+            if p.name in loop_owns:
+                continue
+            base, info = p.annotation.__origin__, p.annotation.__metadata__[0]
+            info = copy(info)
+            info.help = (info.help or "") + " (`sdp train`'s option; default: its default)"
+            info.show_default = False
+            forwarded.append(inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=None,
+                                               annotation=Annotated[Optional[base], info]))
+        names = [p.name for p in forwarded]
+
+        @functools.wraps(fn)
+        @clean_errors
+        def wrapper(**kwargs):
+            opts = {}
+            for name in names:
+                value = kwargs.pop(name)
+                if value is not None:
+                    opts[TRAIN_FIELD.get(name, name)] = TRAIN_PARSE.get(name, lambda v: v)(value)
+            return fn(**kwargs, train_options=opts)
+
+        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "train_options"]
+        wrapper.__signature__ = inspect.Signature(own + forwarded)
+        wrapper.__annotations__ = {p.name: p.annotation for p in own + forwarded}
+        del wrapper.__wrapped__     # typer reads __signature__, not the wrapped function's parameters
+        return wrapper
+
+    return decorate

@@ -31,14 +31,21 @@ def test_every_train_option_is_a_config_field():
 
 
 def test_loop_and_pipeline_pass_train_options_under_the_same_flags():
-    train = {opt for p in _params("train").values() for opt in p.opts + p.secondary_opts}
-    loop = _params("loop")
+    """`sdp loop` has every `sdp train` training option that is not one of its own (generated from `sdp train`'s
+    declarations: the same flags, default None = TrainConfig's default), and nothing else of `sdp train`'s."""
+    train, loop = _params("train"), _params("loop")
     names = {f.name for f in fields(TrainConfig)}
     assert train_option_names() == names - _GROUP_OWNED      # pipelines/*.yaml `train: {field: value}`
     assert _GROUP_OWNED <= names
-    for key in ("alpha_sobolev", "batch_size", "sobolev_cap", "sobolev_path", "sobolev_balance"):
-        assert key in loop and key in names          # `sdp loop` forwards these into TrainConfig
-        assert set(loop[key].opts) <= train, key
+    loop_own = {"method", "epochs", "seed", "horizon", "save_at", "device", "threads", "progress", "out"}
+    forwarded = {n for n in train if n not in NOT_CONFIG and n not in loop_own}
+    assert forwarded == {"batch_size", "lr", "diffusion_steps", "down_dims", "alpha_sobolev", "sobolev_balance",
+                         "sobolev_path", "n_proj", "sobolev_mode", "sobolev_fraction", "sobolev_cap", "action"}
+    for key in forwarded:
+        assert key in loop, key
+        assert loop[key].opts == train[key].opts and loop[key].secondary_opts == train[key].secondary_opts, key
+        assert loop[key].default is None, key
+        assert RENAMED.get(key, key) in names, key       # and each is a TrainConfig field
 
 
 def test_shared_options_are_declared_once():
