@@ -30,8 +30,8 @@ from sdp_cli.data.artifacts import (atomic_write_bytes, check_writable, load_npz
                                     split_timing)
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
-from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, refine_index,  # noqa: F401
-                                 sample_xi, solve_index, warm_solver)
+from sdp_cli.solve_jobs import (DDP_BATCH, RESULT_KEYS, failed_result, instance_arrays,  # noqa: F401
+                                 refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
 from sdp_cli.tasks import Task, get_task
 
 @dataclass(frozen=True)
@@ -97,10 +97,14 @@ class _Jobs:
             self.rcfg = RolloutConfig(n=1, seed=config.seed, t_a=config.t_a,
                                       k_rollout=config.k_rollout).validate(self.policy)
 
-    def make(self, indices: list[int]) -> list[tuple[Callable, tuple]]:
+    def make(self, indices: list[int]) -> list[tuple[Callable, tuple, list[int]]]:
+        """Jobs ``(fn, args, indices)``: one per index, or (``to="ddp"``) one per batch of up to
+        :data:`~sdp_cli.solve_jobs.DDP_BATCH` indices solved together; every job returns a list of results."""
         c = self.config
+        size = DDP_BATCH if c.to == "ddp" else 1
+        chunks = [indices[j:j + size] for j in range(0, len(indices), size)]
         if self.policy is None:
-            return [(solve_index, (c.task, c.task_options, c.seed, i, c.max_iter, c.to)) for i in indices]
+            return [(solve_indices, (c.task, c.task_options, c.seed, ch, c.max_iter, c.to), ch) for ch in chunks]
         import torch
 
         from sdp_cli.rollout import instance_generators, rollout_policy
@@ -109,8 +113,10 @@ class _Jobs:
         with torch.no_grad():
             traj = rollout_policy(self.policy, xis, self.rcfg,
                                   generators=instance_generators(c.seed, indices))
-        return [(refine_index, (c.task, c.task_options, i, xis[k], traj["X"][k], traj["U"][k], c.max_iter, c.to))
-                for k, i in enumerate(indices)]
+        pos = {i: k for k, i in enumerate(indices)}
+        return [(refine_indices, (c.task, c.task_options, ch, [xis[pos[i]] for i in ch],
+                                  [traj["X"][pos[i]] for i in ch], [traj["U"][pos[i]] for i in ch], c.max_iter, c.to),
+                 ch) for ch in chunks]
 
 
 def policy_fingerprint(path: str | os.PathLike) -> str:
@@ -239,23 +245,28 @@ def _run(ex, jobs: _Jobs, task: Task, config: CollectConfig, done: dict, update:
     lost with its worker is not counted and gets submitted again by the next round.
     """
     cap = config.attempts_cap
-    inflight: dict = {}
+    inflight: dict = {}     # future -> the indices it solves
+    size = DDP_BATCH if config.to == "ddp" else 1
     try:
         while kept_indices(done, config.n_traj) is None:
             room = (ex.max_inflight or max(1, config.n_traj)) - len(inflight)
-            todo = list(itertools.islice(_next_indices(done, set(inflight.values()), config.n_traj, cap),
-                                         max(room, 0)))
-            for (fn, a), i in zip(jobs.make(todo) if todo else [], todo):
-                inflight[ex.submit(fn, *a)] = i
+            busy = {i for idxs in inflight.values() for i in idxs}
+            todo = list(itertools.islice(_next_indices(done, busy, config.n_traj, cap), max(room, 0) * size))
+            for fn, a, idxs in jobs.make(todo) if todo else []:
+                inflight[ex.submit(fn, *a)] = idxs
             if not inflight:
                 break
-            for fut in sorted(ex.wait_any(list(inflight)), key=inflight.get):
-                i = inflight.pop(fut)
+            for fut in sorted(ex.wait_any(list(inflight)), key=lambda f: inflight[f][0]):
+                idxs = inflight.pop(fut)
                 out = ex.outcome(fut)
                 if out.lost:
                     continue
-                update(out.value if out.ok else
-                       failed_result(task, i, sample_xi(task, config.seed, i), error_status(out.error)))
+                if out.ok:
+                    for value in out.value:
+                        update(value)
+                else:
+                    for i in idxs:
+                        update(failed_result(task, i, sample_xi(task, config.seed, i), error_status(out.error)))
     finally:
         ex.cancel(list(inflight))
 

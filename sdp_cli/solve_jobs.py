@@ -3,8 +3,9 @@
 Each job is a module-level function of small, picklable arguments that returns a dict of
 arrays, so that any executor (:mod:`sdp_cli.executor`) can run it: :func:`solve_index`
 (TO from the naive guess, line 5), :func:`refine_instance` (TO from the policy's rollout and
-from the naive guess, kept by :func:`argmin_cost`, lines 6-8), :func:`refine_index` (the same,
-labelled with its sample index, for ``sdp collect --policy``). ``sdp collect`` and ``sdp refine``
+from the naive guess, kept by :func:`argmin_cost`, lines 6-8), :func:`refine_indices` (the same for several
+instances, labelled with their sample indices, for ``sdp collect --policy``), and :func:`solve_indices` /
+:func:`refine_instances` for several instances in one job (one batch with the DDP). ``sdp collect`` and ``sdp refine``
 both import this module and not each other.
 """
 
@@ -32,7 +33,10 @@ def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_i
     solver = get_to_solver(task, to, max_iter=max_iter)
     xi = sample_xi(task, seed, index)
     X0, U0 = task.naive_guess(xi)
-    res = solver.solve(xi, X0, U0)
+    return _solve_record(solver.solve(xi, X0, U0), xi, index)
+
+
+def _solve_record(res, xi: np.ndarray, index: int) -> dict:
     out = {k: np.asarray(getattr(res, k)) for k in RESULT_KEYS}
     out["xi"] = xi
     out["index"] = np.asarray(index)
@@ -40,10 +44,25 @@ def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_i
     return out
 
 
-def refine_index(task_name, task_options, index, xi, X_pol, U_pol, max_iter, to: str = "ms") -> dict:
-    rec = refine_instance(task_name, task_options, xi, X_pol, U_pol, max_iter, baseline=True, to=to)
-    rec["index"] = np.asarray(index)
-    return {k: np.asarray(v) for k, v in rec.items()}
+#: instances per executor job with ``to="ddp"``: solved as one batch (box-FDDP amortizes its Python overhead
+#: over the batch; an instance's result does not depend on its batch, so the chunking changes no number)
+DDP_BATCH = 16
+
+
+def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[int], max_iter: int,
+                  to: str = "ms") -> list[dict]:
+    """:func:`solve_index` of several indices in one job; with ``to="ddp"`` one DDP batch."""
+    if to != "ddp":
+        return [solve_index(task_name, task_options, seed, i, max_iter, to) for i in indices]
+    from sdp_cli.trajopt import get_to_solver
+
+    task = get_task(task_name, **task_options)
+    solver = get_to_solver(task, to, max_iter=max_iter)
+    xis = np.stack([sample_xi(task, seed, i) for i in indices])
+    guesses = [task.naive_guess(xi) for xi in xis]
+    results = solver.solve_batch(np.stack([task.initial_state(x) for x in xis]), xis,
+                                 np.stack([g[0] for g in guesses]), np.stack([g[1] for g in guesses]))
+    return [_solve_record(r, xi, i) for r, xi, i in zip(results, xis, indices)]
 
 
 def warm_solver(task_name: str, task_options: dict, max_iter: int, to: str = "ms") -> int:
@@ -105,17 +124,44 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
 
     ``single_shooting``: also solve both with the single-shooting baseline (``ss_*`` records; reported,
     never kept in the dataset)."""
+    return refine_instances(task_name, task_options, [xi], [X_pol], [U_pol], max_iter, baseline, single_shooting,
+                            to)[0]
+
+
+def refine_instances(task_name: str, task_options: dict, xis, X_pols, U_pols, max_iter: int, baseline: bool,
+                     single_shooting: bool = False, to: str = "ms") -> list[dict]:
+    """:func:`refine_instance` of several instances in one job; with ``to="ddp"`` the policy guesses are solved as
+    one DDP batch and the naive guesses as another (the same results as one by one)."""
     from sdp_cli.trajopt import get_to_solver
 
     task = get_task(task_name, **task_options)
     solver = get_to_solver(task, to, max_iter=max_iter)
-    U_pol = np.clip(U_pol, task.u_lb, task.u_ub)
+    U_pols = [np.clip(U, task.u_lb, task.u_ub) for U in U_pols]
     # a diverged rollout (non-finite, or cost above the rollout's divergence threshold) is no
     # guess: solving from states of 1e7 wastes the iteration budget at best, and fatrop's line
     # search can loop forever from there
-    usable = usable_guess(task, xi, X_pol, U_pol)
-    pol = solver.solve(xi, X_pol, U_pol) if usable else None
-    base = solver.solve(xi, *task.naive_guess(xi)) if baseline else None
+    usable = [usable_guess(task, xi, X, U) for xi, X, U in zip(xis, X_pols, U_pols)]
+    pols = _solve_many(task, solver, to, [(xi, X, U) for xi, X, U, ok in zip(xis, X_pols, U_pols, usable) if ok])
+    pols = iter(pols)
+    pol_results = [next(pols) if ok else None for ok in usable]
+    bases = _solve_many(task, solver, to, [(xi, *task.naive_guess(xi)) for xi in xis]) if baseline else [None] * len(xis)
+    return [_refine_record(task, xi, X_pol, U_pol, ok, pol, base, max_iter, baseline, single_shooting)
+            for xi, X_pol, U_pol, ok, pol, base in zip(xis, X_pols, U_pols, usable, pol_results, bases)]
+
+
+def _solve_many(task, solver, to: str, problems: list[tuple]) -> list:
+    """``solver.solve(xi, X, U)`` of each problem; one batch for the DDP."""
+    if not problems:
+        return []
+    if to == "ddp":
+        xis = np.stack([p[0] for p in problems])
+        return solver.solve_batch(np.stack([task.initial_state(x) for x in xis]), xis,
+                                  np.stack([p[1] for p in problems]), np.stack([p[2] for p in problems]))
+    return [solver.solve(*p) for p in problems]
+
+
+def _refine_record(task, xi, X_pol, U_pol, usable: bool, pol, base, max_iter: int, baseline: bool,
+                   single_shooting: bool) -> dict:
     win = argmin_cost([pol, base])
     rec = {
         "xi": xi,
@@ -136,6 +182,17 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
     if single_shooting:
         rec.update(_single_shooting_record(task, xi, U_pol, usable, baseline, max_iter))
     return rec
+
+
+def refine_indices(task_name, task_options, indices, xis, X_pols, U_pols, max_iter, to: str = "ms") -> list[dict]:
+    """:func:`refine_instances` labelled with their sample indices (``sdp collect --policy``); one DDP batch with
+    ``to="ddp"``."""
+    recs = refine_instances(task_name, task_options, xis, X_pols, U_pols, max_iter, baseline=True, to=to)
+    out = []
+    for i, rec in zip(indices, recs):
+        rec["index"] = np.asarray(i)
+        out.append({k: np.asarray(v) for k, v in rec.items()})
+    return out
 
 
 def failed_record(xi: np.ndarray, status: str) -> dict:

@@ -38,14 +38,14 @@ def always_exit(x):
 def solve_or_raise(task_name, task_options, seed, index, max_iter):
     if index == BAD:
         raise RuntimeError("worker-side failure")
-    return solve_index(task_name, task_options, seed, index, max_iter)
+    return [solve_index(task_name, task_options, seed, index, max_iter)]
 
 
 def flaky_jobs(monkeypatch):
-    """Make collect's naive-guess jobs raise on index BAD."""
+    """Make collect's naive-guess jobs raise on index BAD (jobs are ``(fn, args, indices)``, results lists)."""
     def make(self, indices):
         c = self.config
-        return [(solve_or_raise, (c.task, c.task_options, c.seed, i, c.max_iter)) for i in indices]
+        return [(solve_or_raise, (c.task, c.task_options, c.seed, i, c.max_iter), [i]) for i in indices]
 
     monkeypatch.setattr(collect_mod._Jobs, "make", make)
 

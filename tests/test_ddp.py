@@ -191,8 +191,8 @@ def test_loop_with_ddp_as_its_to_runs_end_to_end(tmp_path):
     import pandas as pd
 
     out = tmp_path / "loop"
-    r = CliRunner().invoke(app, ["loop", "--task", "pendulum", "--method", "sdp", "--to", "ddp", "--n-traj", "2",
-                                 "--epochs", "2", "--n-test", "2", "--horizon", "16", "--workers", "1",
+    r = CliRunner().invoke(app, ["loop", "--task", "pendulum", "--method", "sdp", "--to", "ddp", "--n-traj", "3",
+                                 "--epochs", "2", "--n-test", "3", "--horizon", "16", "--workers", "1", "--n-algo", "2",
                                  "--no-progress", "--out", str(out)])
     assert r.exit_code == 0, r.output
     arrays, meta = load_npz(out / "it0" / "data.npz", kind="dataset")
@@ -201,9 +201,13 @@ def test_loop_with_ddp_as_its_to_runs_end_to_end(tmp_path):
     assert list(ev["to"]) == ["ddp"]
     refined, _ = load_npz(next((out / "it0" / "eval").glob("refined_*.npz")), kind="dataset")
     task = get_task("pendulum")
-    xi = refined["inst_xi"][0]
-    alone = DDPSolver(task).solve(xi, *task.naive_guess(xi))         # TO alone is the DDP from the naive guess
-    assert refined["inst_base_cost"][0] == pytest.approx(alone.cost, rel=1e-12)
+    for j in range(3):          # TO alone is the DDP from the naive guess; batched in the job = solved alone
+        xi = refined["inst_xi"][j]
+        alone = DDPSolver(task).solve(xi, *task.naive_guess(xi))
+        assert refined["inst_base_cost"][j] == pytest.approx(alone.cost, rel=1e-12)
+    # the second iteration's collection refines the policy's rollouts with the DDP (one batch per job)
+    arrays1, meta1 = load_npz(out / "it1" / "data.npz", kind="dataset")
+    assert meta1["config"]["to"] == "ddp" and len(arrays1["inst_pol_cost"]) >= 3 and arrays1["converged"].all()
     r = CliRunner().invoke(app, ["collect", "--task", "quadrotor-0", "--to", "ddp", "--n-traj", "1",
                                  "--out", str(tmp_path / "q.npz")])
     assert r.exit_code == 1 and "state constraints" in r.output and not (tmp_path / "q.npz").exists()
