@@ -136,7 +136,7 @@ def main() -> None:
              f"{datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs "
              f"({a.jobs} runs at a time, 1 thread each). Instances: collection seed 0, indices 0..n-1. "
              "ms-fatrop: multiple shooting + fatrop (our optimizer, used for collection and gains); ss-ipopt: "
-             "single shooting (controls only, states by rollout, as a DDP-type solver sees the problem) + IPOPT "
+             "single shooting (controls only, states by rollout) + IPOPT "
              "with a limited-memory Hessian. Cap 1000 iterations, tolerance 1e-6. reached: converged, within the "
              "task's goal tolerance at T (pendulums 0.1 m, UR5 and quadrotor 0.05 m), constraints satisfied. Costs "
              "over converged solves.", "",
