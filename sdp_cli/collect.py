@@ -30,7 +30,7 @@ from sdp_cli.data.artifacts import (atomic_write_bytes, check_writable, load_npz
                                     split_timing)
 from sdp_cli.errors import SdpError
 from sdp_cli.executor import error_status
-from sdp_cli.solve_jobs import (DDP_BATCH, RESULT_KEYS, failed_result, instance_arrays,  # noqa: F401
+from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
                                  refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
 from sdp_cli.tasks import Task, get_task
 
@@ -101,8 +101,7 @@ class _Jobs:
         """Jobs ``(fn, args, indices)``: one per index, or (``to="ddp"``) one per batch of up to
         :data:`~sdp_cli.solve_jobs.DDP_BATCH` indices solved together; every job returns a list of results."""
         c = self.config
-        size = DDP_BATCH if c.to == "ddp" else 1
-        chunks = [indices[j:j + size] for j in range(0, len(indices), size)]
+        chunks = job_chunks(indices, c.to)
         if self.policy is None:
             return [(solve_indices, (c.task, c.task_options, c.seed, ch, c.max_iter, c.to), ch) for ch in chunks]
         import torch
@@ -246,7 +245,7 @@ def _run(ex, jobs: _Jobs, task: Task, config: CollectConfig, done: dict, update:
     """
     cap = config.attempts_cap
     inflight: dict = {}     # future -> the indices it solves
-    size = DDP_BATCH if config.to == "ddp" else 1
+    size = job_size(config.to)
     try:
         while kept_indices(done, config.n_traj) is None:
             room = (ex.max_inflight or max(1, config.n_traj)) - len(inflight)

@@ -19,11 +19,12 @@ import numpy as np
 from sdp_cli.argmin import (TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost,  # noqa: F401 (re-exported)
                             policy_outcomes)
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
-from sdp_cli.solve_jobs import (DDP_BATCH, RESULT_KEYS, SS_KEYS, failed_record, instance_arrays,  # noqa: F401
+from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, failed_record, instance_arrays, job_chunks,  # noqa: F401
                                 refine_instance, refine_instances, usable_guess, warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params
+
 
 @dataclass
 class RefineStats:
@@ -78,8 +79,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         described = ex.describe()
         ex.warm(warm_solver, task_name, task_options, max_iter, to)  # once per worker process
         # one instance per job, or (--to ddp) batches solved together (the same results, amortized)
-        size = DDP_BATCH if to == "ddp" else 1
-        chunks = [list(range(j, min(n, j + size))) for j in range(0, n, size)]
+        chunks = job_chunks(list(range(n)), to)
         argsets = [(task_name, task_options, [arrays["xi"][i] for i in ch], [arrays["X"][i] for i in ch],
                     [arrays["U"][i] for i in ch], max_iter, baseline, single_shooting, to) for ch in chunks]
         for c, res in ex.imap_unordered(refine_instances, argsets):

@@ -27,13 +27,7 @@ def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
 
 def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int, to: str = "ms") -> dict:
     """Solve instance ``index`` from the naive guess with TO family ``to``; a dict of arrays (picklable)."""
-    from sdp_cli.trajopt import get_to_solver
-
-    task = get_task(task_name, **task_options)
-    solver = get_to_solver(task, to, max_iter=max_iter)
-    xi = sample_xi(task, seed, index)
-    X0, U0 = task.naive_guess(xi)
-    return _solve_record(solver.solve(xi, X0, U0), xi, index)
+    return solve_indices(task_name, task_options, seed, [index], max_iter, to)[0]
 
 
 def _solve_record(res, xi: np.ndarray, index: int) -> dict:
@@ -49,19 +43,26 @@ def _solve_record(res, xi: np.ndarray, index: int) -> dict:
 DDP_BATCH = 16
 
 
+def job_size(to: str) -> int:
+    """Instances per executor job for TO family ``to``."""
+    return DDP_BATCH if to == "ddp" else 1
+
+
+def job_chunks(items: list, to: str) -> list[list]:
+    """``items`` cut into the consecutive groups that one job each solves (:func:`job_size`)."""
+    size = job_size(to)
+    return [items[j:j + size] for j in range(0, len(items), size)]
+
+
 def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[int], max_iter: int,
                   to: str = "ms") -> list[dict]:
     """:func:`solve_index` of several indices in one job; with ``to="ddp"`` one DDP batch."""
-    if to != "ddp":
-        return [solve_index(task_name, task_options, seed, i, max_iter, to) for i in indices]
     from sdp_cli.trajopt import get_to_solver
 
     task = get_task(task_name, **task_options)
     solver = get_to_solver(task, to, max_iter=max_iter)
-    xis = np.stack([sample_xi(task, seed, i) for i in indices])
-    guesses = [task.naive_guess(xi) for xi in xis]
-    results = solver.solve_batch(np.stack([task.initial_state(x) for x in xis]), xis,
-                                 np.stack([g[0] for g in guesses]), np.stack([g[1] for g in guesses]))
+    xis = [sample_xi(task, seed, i) for i in indices]
+    results = _solve_many(task, solver, to, [(xi, *task.naive_guess(xi)) for xi in xis])
     return [_solve_record(r, xi, i) for r, xi, i in zip(results, xis, indices)]
 
 

@@ -7,15 +7,14 @@ cost and constraints evaluate, and the scene a plot needs is there."""
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 import pytest
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.tasks import _REGISTRY, get_task, register, task_names
-from sdp_cli.tasks.base import Task
 from sdp_cli.tasks.contract import action_rows, model_rows
+from toy_tasks import TurntableTask
 
 CASES = [(name, a) for name in task_names() for a in get_task(name).accepted_actions]
 
@@ -43,49 +42,7 @@ def test_registered_task_accepted_action_meets_the_contract(name, action):
     check_action(get_task(name), action)
 
 
-# ------------------------------------------------------------------ a task added by one class
-class TurntableTask(Task):
-    """A 1 kg mass at 0.5 m on a turntable (revolute joint about the vertical: no gravity torque), turned by
-    a bounded torque from a random angle to a goal angle: ``xi = (q0, v0, q_goal)``;
-    ``l_t = dt 1/2 (10 (q - q_goal)^2 + 0.1 u^2)``, ``l_T = 1/2 10 (q_T - q_goal)^2``."""
-
-    goal_tolerance = 0.05
-
-    def __init__(self, T: int = 40, dt: float = 0.02):
-        model = pin.Model()
-        j = model.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "turn")
-        arm = pin.SE3(np.eye(3), np.array([0.5, 0.0, 0.0]))
-        model.appendBodyToJoint(j, pin.Inertia.FromSphere(1.0, 0.1), arm)
-        model.addFrame(pin.Frame("mass", j, 0, arm, pin.FrameType.OP_FRAME))
-        self.model, self.name, self.T, self.dt = model, "toy-turntable", T, dt
-        super().__init__()
-        self.nu, self.n_xi = 1, 3
-        self.u_lb, self.u_ub = np.array([-2.0]), np.array([2.0])
-
-    def sample_xi(self, rng):
-        return np.array([rng.uniform(-1, 1), 0.0, rng.uniform(-1, 1)])
-
-    def initial_state(self, xi):
-        return np.asarray(xi[:2], dtype=float).copy()
-
-    def naive_guess(self, xi):
-        X = np.zeros((self.T + 1, 2))
-        X[:, 0] = np.linspace(xi[0], xi[2], self.T + 1)
-        return X, np.zeros((self.T, 1))
-
-    def _running_cost(self, x, u, xi):
-        return self.dt * 0.5 * (10 * (x[0] - xi[2]) ** 2 + 0.1 * u[0] ** 2)
-
-    def _terminal_cost(self, x, xi):
-        return 0.5 * 10 * (x[0] - xi[2]) ** 2
-
-    def goal_distance(self, x, xi):
-        return float(abs(x[0] - xi[2]))
-
-    def goal_point(self, xi):
-        return 0.5 * np.array([np.cos(xi[2]), np.sin(xi[2]), 0.0])
-
-
+# ------------------------------------------------------------------ a task added by one class (tests/toy_tasks.py)
 @pytest.fixture()
 def toy_task():
     register("toy-turntable", lambda **kw: TurntableTask(**kw), "a mass on a turntable (test)")

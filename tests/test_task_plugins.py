@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import textwrap
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -16,48 +16,8 @@ import sdp_cli.tasks as tasks_module
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 
-TASK_SOURCE = textwrap.dedent('''
-    """A user's task, written against sdp's Task interface only: a 1 kg mass on a turntable turned by a
-    bounded torque from a random angle to a goal angle, xi = (q0, v0, q_goal)."""
-    import numpy as np
-    import pinocchio as pin
-
-    from sdp_cli.tasks import Task, register
-
-
-    class SpinTask(Task):
-        goal_tolerance = 0.05
-
-        def __init__(self, T: int = 40, dt: float = 0.02, name: str = "{name}"):
-            model = pin.Model()
-            j = model.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "turn")
-            arm = pin.SE3(np.eye(3), np.array([0.5, 0.0, 0.0]))
-            model.appendBodyToJoint(j, pin.Inertia.FromSphere(1.0, 0.1), arm)
-            self.model, self.name, self.T, self.dt = model, name, T, dt
-            super().__init__()
-            self.nu, self.n_xi = 1, 3
-            self.u_lb, self.u_ub = np.array([-2.0]), np.array([2.0])
-
-        def sample_xi(self, rng):
-            return np.array([rng.uniform(-1, 1), 0.0, rng.uniform(-1, 1)])
-
-        def initial_state(self, xi):
-            return np.asarray(xi[:2], dtype=float).copy()
-
-        def naive_guess(self, xi):
-            X = np.zeros((self.T + 1, 2))
-            X[:, 0] = np.linspace(xi[0], xi[2], self.T + 1)
-            return X, np.zeros((self.T, 1))
-
-        def _running_cost(self, x, u, xi):
-            return self.dt * 0.5 * (10 * (x[0] - xi[2]) ** 2 + 0.1 * u[0] ** 2)
-
-        def _terminal_cost(self, x, xi):
-            return 0.5 * 10 * (x[0] - xi[2]) ** 2
-
-        def goal_distance(self, x, xi):
-            return float(abs(x[0] - xi[2]))
-    ''')
+#: a user's task module: the toy turntable task, written against sdp's Task interface only
+TASK_SOURCE = (Path(__file__).parent / "toy_tasks.py").read_text()
 
 
 @pytest.fixture()
@@ -83,7 +43,8 @@ def _ok(r):
 
 def test_a_task_module_file_runs_collect_train_rollout_and_reaches_workers(clean_registry, tmp_path):
     f = tmp_path / "my_task.py"
-    f.write_text(TASK_SOURCE.replace("{name}", "spin") + '\nregister("spin", SpinTask, "a turntable (user file)")\n')
+    f.write_text(TASK_SOURCE + "\nfrom sdp_cli.tasks import register\n\n"
+                 'register("spin", lambda **kw: TurntableTask(name="spin", **kw), "a turntable (user file)")\n')
     run = CliRunner().invoke
     out = _ok(run(app, ["--task-module", str(f), "tasks"]))
     assert "spin" in out and "a turntable (user file)" in out
@@ -114,7 +75,8 @@ def test_a_task_module_file_runs_collect_train_rollout_and_reaches_workers(clean
 def test_an_installed_package_entry_point_is_a_task_for_every_command(clean_registry, tmp_path, monkeypatch):
     site = tmp_path / "site"
     (site / "spinplug").mkdir(parents=True)
-    (site / "spinplug" / "__init__.py").write_text(TASK_SOURCE.replace("{name}", "spin-ep"))
+    (site / "spinplug" / "__init__.py").write_text(TASK_SOURCE + "\n\ndef SpinTask(**options):\n"
+                                                   '    return TurntableTask(name="spin-ep", **options)\n')
     info = site / "spinplug-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: spinplug\nVersion: 0.1\n")
@@ -138,7 +100,7 @@ def test_bad_task_modules_are_one_line_errors_and_built_in_names_are_kept(clean_
     bad = tmp_path / "bad.py"
     bad.write_text("raise ValueError('no robot here')\n")
     clash = tmp_path / "clash.py"
-    clash.write_text(TASK_SOURCE.replace("{name}", "pendulum") + '\nregister("pendulum", SpinTask, "x")\n')
+    clash.write_text(TASK_SOURCE + '\nfrom sdp_cli.tasks import register\n\nregister("pendulum", TurntableTask, "x")\n')
     for args, msg in ((["--task-module", str(tmp_path / "missing.py"), "tasks"], "not a Python file"),
                       (["--task-module", str(bad), "tasks"], "failed: ValueError: no robot here"),
                       (["--task-module", str(clash), "tasks"], "task 'pendulum' is built in")):

@@ -25,9 +25,12 @@ def check_to(to: str, task=None) -> None:
 
     if to not in TO_FAMILIES:
         raise SdpError(f"--to must be one of {', '.join(TO_FAMILIES)}; got {to!r}")
-    if to == "ddp" and task is not None and (task.n_h or task.nx != task.ndx):
-        raise SdpError(f"--to ddp: task {task.name!r} has state constraints or a configuration manifold, which the "
-                       "DDP solver does not handle yet (its augmented-Lagrangian loop is not built); use --to ms")
+    if to == "ddp" and task is not None:
+        from sdp_cli.trajopt.ddp import unsupported
+
+        why = unsupported(task)
+        if why:
+            raise SdpError(f"--to ddp: task {task.name!r} has {why}, which the DDP solver does not handle; use --to ms")
 
 
 def get_to_solver(task, to: str = "ms", max_iter: int = DEFAULT_MAX_ITER):

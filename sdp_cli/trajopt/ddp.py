@@ -42,6 +42,7 @@ outer loop and is refused with one line.
 from __future__ import annotations
 
 import time
+import weakref
 
 import casadi as ca
 import numpy as np
@@ -58,6 +59,15 @@ REG_INIT, REG_MIN, REG_MAX, REG_FACTOR = 1e-9, 1e-9, 1e9, 10.0
 STEP_INC, STEP_DEC = 0.01, 0.5
 ACCEPT, ACCEPT_NEG = 0.1, 2.0
 ALPHAS = tuple(2.0 ** -np.arange(11))
+
+
+def unsupported(task) -> str | None:
+    """Why the DDP cannot solve ``task`` (state constraints, a configuration manifold), or None."""
+    if task.n_h:
+        return "state constraints (its augmented-Lagrangian outer loop is not built yet)"
+    if task.nx != task.ndx:
+        return "a configuration manifold (nx != ndx)"
+    return None
 
 
 def ddp_functions(task, T: int) -> list[ca.Function]:
@@ -124,12 +134,9 @@ class DDPSolver:
 
     def __init__(self, task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER, tol: float = STOP_TOL,
                  jit: bool | None = None):
-        if task.n_h:
-            raise SdpError(f"the DDP solver handles control bounds only; task {task.name!r} has state constraints "
-                           "(its augmented-Lagrangian outer loop is not built yet): use --to ms")
-        if task.nx != task.ndx:
-            raise SdpError(f"the DDP solver needs a vector-space state; task {task.name!r} has a configuration "
-                           "manifold (nx != ndx): use --to ms")
+        why = unsupported(task)
+        if why:
+            raise SdpError(f"--to ddp: task {task.name!r} has {why}, which the DDP solver does not handle; use --to ms")
         self.task, self.T = task, int(task.T if horizon is None else horizon)
         if self.T < 1 or int(max_iter) < 0 or not tol > 0:
             raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
@@ -276,10 +283,13 @@ class DDPSolver:
         iters = np.zeros(N, dtype=int)
         converged = np.zeros(N, dtype=bool)
         active = np.all(np.isfinite(X), axis=(1, 2)) & np.all(np.isfinite(U), axis=(1, 2))
-        status = ["" if a else "not converged: non-finite guess (solver not started)" for a in active]
+        status = np.array(["" if a else "not converged: non-finite guess (solver not started)" for a in active],
+                          dtype=object)
         cost = np.full(N, np.nan)
         # per instance: V_x and the free controls of its last backward pass (for the gains)
         Vx_keep, free_keep = np.zeros((N, T + 1, task.nx)), np.ones((N, T, task.nu), dtype=bool)
+        lin_keep = {"A": np.zeros((N, T, task.nx, task.nx)), "B": np.zeros((N, T, task.nx, task.nu)),
+                    "lTxx": np.zeros((N, task.nx, task.nx))}
         for _ in range(self.max_iter + 1):
             idx = np.flatnonzero(active)
             if not len(idx):
@@ -294,13 +304,13 @@ class DDPSolver:
             feasible = np.abs(gaps).max(axis=(1, 2)) <= GAP_TOL
             done = ok & feasible & (stop <= self.tol) & ~bad
             converged[idx[done]] = True
-            for i in idx[done]:
-                status[i] = "converged"
+            status[idx[done]] = "converged"
             out_of_iter = iters[idx] >= self.max_iter
-            for i in idx[out_of_iter & ~done]:
-                status[i] = f"not converged: {self.max_iter} iterations (the cap)"
-            for i in idx[bad & ~done]:
-                status[i] = "not converged: non-finite cost"
+            status[idx[out_of_iter & ~done]] = f"not converged: {self.max_iter} iterations (the cap)"
+            status[idx[bad & ~done]] = "not converged: non-finite cost"
+            if done.any():          # what the gains need at a converged point, from this iteration's derivatives
+                for key in ("A", "B", "lTxx"):
+                    lin_keep[key][idx[done]] = d[key][done]
             stopped = done | out_of_iter | bad
             active[idx[stopped]] = False
             go = ~stopped
@@ -310,22 +320,21 @@ class DDPSolver:
             search = go & ok
             if search.any():
                 s = np.flatnonzero(search)
-                acc_alpha = self._line_search(X, U, idx[s], xi, d, gaps, k, K, s)
-                for j, a in zip(idx[s], acc_alpha):
-                    if a > STEP_DEC:
-                        reg[j] = max(REG_MIN, reg[j] / REG_FACTOR)
-                    elif a <= STEP_INC:
-                        reg[j] *= REG_FACTOR
+                acc = self._line_search(X, U, idx[s], xi, d, gaps, k, K, s)
+                dec, inc = idx[s][acc > STEP_DEC], idx[s][acc <= STEP_INC]
+                reg[dec] = np.maximum(REG_MIN, reg[dec] / REG_FACTOR)
+                reg[inc] *= REG_FACTOR
             over = np.flatnonzero(active & (reg > REG_MAX))
-            for i in over:
+            for i in over:          # (rare: the instances that just failed)
                 status[i] = f"not converged: regularization above {REG_MAX:g} after {iters[i]} iterations"
                 cost[i] = task.cost(X[i], U[i], xi[i])          # a last tiny step may have moved the iterate
             active[over] = False
         wall = time.perf_counter() - t_start
         per_iter = wall / max(1, int(iters.sum()))
+        f = self._step_one(X[:, :-1].reshape(N * T, task.nx), U.reshape(N * T, task.nu)).reshape(N, T, task.nx)
         results = []
         for i in range(N):
-            gap = np.concatenate([x0[i] - X[i, 0], (self._step_one(X[i, :-1], U[i]) - X[i, 1:]).ravel()])
+            gap = np.concatenate([x0[i] - X[i, 0], (f[i] - X[i, 1:]).ravel()])
             res = SolveResult(X=X[i].copy(), U=U[i].copy(), cost=float(cost[i]), iterations=int(iters[i]),
                               converged=bool(converged[i]), solve_time=float(iters[i] * per_iter),
                               max_violation=float(np.abs(gap).max()) if np.all(np.isfinite(gap)) else float("inf"),
@@ -335,7 +344,7 @@ class DDPSolver:
                               active_h=np.zeros((T, 0), dtype=bool), solver="ddp", x0=x0[i].copy(), xi=xi[i].copy())
             res.batch_wall_time = wall
             if gains and converged[i]:
-                self._add_gains(res, Vx_keep[i])
+                self._add_gains(res, Vx_keep[i], {key: v[i] for key, v in lin_keep.items()})
             results.append(res)
         return results
 
@@ -360,44 +369,40 @@ class DDPSolver:
             expected = -(a * d1[p] + 0.5 * a * a * d2[p])       # the model's decrease
             actual = J0[p] - J
             good = np.isfinite(J) & np.where(expected >= 0, actual >= ACCEPT * expected, actual >= ACCEPT_NEG * expected)
-            for j in np.flatnonzero(good):
-                r = rows[p[j]]
-                X[r], U[r] = Xn[j], Un[j]
+            X[rows[p[good]]], U[rows[p[good]]] = Xn[good], Un[good]
             accepted[p[good]] = a
             pending[p[good]] = False
         return accepted
 
-    def _add_gains(self, res: SolveResult, Vx: np.ndarray) -> None:
-        """Feedback gains at a converged solution with the exact Lagrangian Hessian (co-states ``V_x``)."""
+    def _add_gains(self, res: SolveResult, Vx: np.ndarray, lin: dict) -> None:
+        """Feedback gains at a converged solution with the exact Lagrangian Hessian (co-states ``V_x``; ``lin``:
+        ``A``, ``B``, ``lTxx`` of the iteration that found it converged)."""
         t0 = time.perf_counter()
         task, T = self.task, self.T
         X, U, xi = res.X, res.U, res.xi
-        d = self._derivatives(X[None], U[None], xi[None])
         lam = -Vx[1:]                                             # d^2 [l + V_x(t+1)' f] = d^2 [l - lam' f]
         H = self._map("sdp_ddp_hess", T)(X[:-1].T, U.T, np.repeat(xi[None], T, 0).T, lam.T)
         s = task.nx + task.nu
         H = _cols(H, T, s, s)
-        HT = d["lTxx"][0]
         try:
-            K = _gains.riccati_gains_fast(self._f[f"sdp_ddp_riccati_T{T}"], d["A"][0], d["B"][0], H, HT, res.clamped)
+            K = _gains.riccati_gains_fast(self._f[f"sdp_ddp_riccati_T{T}"], lin["A"], lin["B"], H, lin["lTxx"],
+                                          res.clamped)
             if not np.all(np.isfinite(K)):
                 raise np.linalg.LinAlgError("non-finite gains")
         except np.linalg.LinAlgError as e:
             res.status += f"; gains unavailable ({e})"
         else:
-            res.A, res.B, res.K = d["A"][0], d["B"][0], K
+            res.A, res.B, res.K = lin["A"], lin["B"], K
             res.Phi = res.A + res.B @ K
         res.gain_time = time.perf_counter() - t0
 
 
-_CACHE: dict = {}
+_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def get_ddp_solver(task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER) -> DDPSolver:
     """The box-FDDP solver of ``task`` on ``horizon`` (default ``task.T``), built once per process."""
-    import weakref
-
-    per_task = _CACHE.setdefault(id(task), (weakref.ref(task), {}))[1]
+    per_task = _CACHE.setdefault(task, {})
     key = (task.T if horizon is None else int(horizon), int(max_iter))
     if key not in per_task:
         per_task[key] = DDPSolver(task, key[0], max_iter=key[1])
