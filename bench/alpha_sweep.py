@@ -28,7 +28,7 @@ def run_one(a, alpha: float, path: str, seed: int) -> dict:
     if not summary.is_file():
         cmd = [sys.executable, "-m", "sdp_cli.cli", "loop", "--task", a.task, "--method", "sdp", "--n-algo", "1",
                "--n-traj", str(a.n_traj), "--epochs", str(a.epochs), "--horizon", str(a.horizon),
-               "--t-a", str(a.t_a), "--n-test", str(a.n_test), "--seed", str(seed), "--alpha-sobolev", str(alpha),
+               "--t-a", str(a.t_a), "--n-test", str(a.n_test), "--seed", str(seed), "--sobolev-alpha", str(alpha),
                "--sobolev-path", path, "--workers", "1", "--threads", "1", "--out", str(run)]
         if a.no_refine:
             cmd.append("--no-eval-refine")

@@ -36,7 +36,7 @@ import pandas as pd
 
 SMALL = ["--task", "pendulum", "--n-algo", "2", "--n-traj", "10", "--epochs", "700", "--horizon", "16",
          "--t-a", "8", "--eval-t-a", "8", "--n-test", "20", "--batch-size", "128", "--workers", "1"]
-VARIANTS = {"sdp": ["--method", "sdp"], "alpha0": ["--method", "sdp", "--alpha-sobolev", "0"],
+VARIANTS = {"sdp": ["--method", "sdp"], "alpha0": ["--method", "sdp", "--sobolev-alpha", "0"],
             "flipped": ["--method", "sdp"], "dp": ["--method", "dp"]}
 
 

@@ -25,7 +25,7 @@ def _train_default(task: str, root: Path) -> Path:
     from sdp_cli.train import train
 
     data, _ = collect(CollectConfig(task=task, n_traj=10, seed=0), root / "data.npz", workers=1)
-    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), "method": "sdp", "epochs": 20, "T_h": 16})
+    cfg = TrainConfig.of(**{"method": "sdp", "epochs": 20, "horizon": 16})
     train(data, root / "sdp", cfg, device="cpu", progress=False, log=lambda s: None)
     return root / "sdp"
 

@@ -30,7 +30,7 @@ def run_one(data: str, out: str, mode: str, seed: int, epochs: int, horizon: int
 
     t0 = time.perf_counter()
     run = Path(out) / f"{mode}-s{seed}"
-    ck = train(data, run, TrainConfig(method="sdp", epochs=epochs, seed=seed, T_h=horizon, sobolev_mode=mode),
+    ck = train(data, run, TrainConfig.of(method="sdp", epochs=epochs, seed=seed, horizon=horizon, sobolev_mode=mode),
                device="cpu", progress=False, log=lambda *_: None, resume=(run / "checkpoint.pt").exists())
     t_train = time.perf_counter() - t0
     _, s = rollout(ck, run / f"rollout-ta{t_a}.npz", RolloutConfig(n=n_test, seed=0, t_a=t_a))

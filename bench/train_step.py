@@ -62,7 +62,7 @@ def dataset_batch(path, B, T_h, seed=0):
 def make_step(mode, batch, dims, T_h):
     method = "dp" if mode == "dp" else "sdp"
     sob_mode = "vjp" if mode == "sdp-vjp" else "jvp"
-    cfg = TrainConfig(method=method, T_h=T_h, sobolev_mode=sob_mode,
+    cfg = TrainConfig.of(method=method, horizon=T_h, sobolev_mode=sob_mode,
                       sobolev_fraction=0.5 if mode == "sdp-jvp-half" else 1.0)
     torch.manual_seed(0)
     net = DiffusionUnetPolicy(cfg, dims)

@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 import typer
 
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
-                                 ToOpt, WorkersOpt, forwards_train_options, clean_errors, int_list, method_help, set_threads, task_help)
+                                 ToOpt, WorkersOpt, with_train_options, clean_errors, int_list, set_threads, task_help)
 from sdp_cli.errors import SdpError
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
@@ -55,7 +55,6 @@ def tasks_cmd() -> None:
         typer.echo(f"{name:24s} {desc}")
 
 
-_METHOD_HELP = method_help()
 
 @app.command("collect")
 @clean_errors
@@ -203,68 +202,39 @@ def plot_dataset_cmd(
 
 
 @app.command("train")
-@clean_errors
+@with_train_options(required=("method",))
 def train_cmd(
     data: Annotated[Path, typer.Option(help="Dataset artifact from `sdp collect` or `sdp refine`.")],
-    method: Annotated[str, typer.Option(help=_METHOD_HELP)],
-    epochs: Annotated[int, typer.Option(help="Epochs: |D|(T-T_h)/T_h chunks (diffusion) or |D|T pairs (MLP).")],
     out: Annotated[Path, typer.Option(help="Run folder: checkpoint.pt, epoch_<E>.pt, metrics.csv.")],
-    seed: Annotated[int, typer.Option(help="Seed of initialization, batches, noise and projections.")] = 0,
     device: DeviceOpt = "auto",
-    batch_size: Annotated[int, typer.Option("--batch-size", help="Batch size B.")] = 256,
-    lr: Annotated[float, typer.Option(help="Peak AdamW learning rate (cosine schedule with warm-up).")] = 1e-3,
-    horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h (diffusion methods).")] = 32,
-    diffusion_steps: Annotated[int, typer.Option("--diffusion-steps", help="DDPM steps K.")] = 5,
-    down_dims: Annotated[str, typer.Option("--down-dims", help="U-Net hidden dims, comma-separated.")] = "24,24,32,32",
-    alpha_sobolev: Annotated[Optional[float], typer.Option("--alpha-sobolev", help="Weight of the Sobolev term (default: the task's, the paper's values: 1, quadrotor 1e-3).")] = None,
-    sobolev_balance: Annotated[bool, typer.Option("--sobolev-balance/--no-sobolev-balance", help="Scale the Sobolev term so that alpha 1 weighs it equally with the regression term on the dataset (docs/training.md).")] = True,
-    sobolev_path: Annotated[str, typer.Option("--sobolev-path", help="sdp: cond = differentiate through (o_hist, a_hist) only (default); total = also through the noisy chunk tau_k.")] = "cond",
-    n_proj: Annotated[int, typer.Option("--n-proj", help="Random projections per sample.")] = 1,
-    sobolev_mode: Annotated[str, typer.Option("--sobolev-mode", help="jvp: project on the state side (forward mode, default); vjp: eq. (6), project on the output side.")] = "jvp",
-    sobolev_fraction: Annotated[float, typer.Option("--sobolev-fraction", help="jvp mode: share of each batch that gets the Sobolev term (1 = all; 0.5 costs ~1.5x a DP step instead of ~1.9x).")] = 1.0,
-    sobolev_cap: Annotated[Optional[float], typer.Option("--sobolev-cap", help="sdp: down-weight the Sobolev error of chunks whose target-Jacobian norm exceeds this quantile of the dataset's (e.g. 0.9); off by default.")] = None,
-    action: Annotated[Optional[str], typer.Option(help="Action variable u, x, q or v (default: the task's).")] = None,
-    save_at: Annotated[Optional[str], typer.Option("--save-at", help="Comma-separated epochs at which to keep a checkpoint, e.g. 1000,2000.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out (after a kill).")] = False,
     init: Annotated[Optional[Path], typer.Option(help="Start from this checkpoint (weights, EMA, normalizer).")] = None,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
+    train=None,
 ) -> None:
-    """Train a policy on a dataset (Algorithm 1, lines 11-23)."""
-    from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.train import train
+    """Train a policy on a dataset (Algorithm 1, lines 11-23). Every training option (grouped by section below)
+    is an option of `sdp loop` too, and a key of an experiment group's `train:`."""
+    from sdp_cli.train import train as run_training
 
-    try:
-        save = [int(s) for s in save_at.split(",") if s.strip()] if save_at else []
-        dims = [int(s) for s in down_dims.split(",") if s.strip()]
-    except ValueError:
-        raise SdpError(f"--save-at and --down-dims must be comma-separated integers, got {save_at!r}, "
-                       f"{down_dims!r}") from None
-    if not dims or min(dims) <= 0:
-        raise SdpError(f"--down-dims must be positive integers, got {down_dims!r}")
     set_threads(threads)
-    cfg = TrainConfig(method=method, epochs=epochs, seed=seed, batch_size=batch_size, lr=lr, T_h=horizon,
-                      K=diffusion_steps, alpha_sobolev=alpha_sobolev, n_proj=n_proj, sobolev_mode=sobolev_mode,
-                      sobolev_fraction=sobolev_fraction, sobolev_cap=sobolev_cap, action=action, save_at=save,
-                      sobolev_balance=sobolev_balance, sobolev_path=sobolev_path,
-                      down_dims=dims)
-    path = train(data, out, cfg, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
+    path = run_training(data, out, train, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
     typer.echo(f"wrote {path}")
 
 
+def _loop_seed(given: dict) -> None:
+    from sdp_cli.seeds import check_loop_seed
+
+    check_loop_seed(given.get("seed", 0))   # collection seeds 1000 * seed + k must stay seeds
+
+
 @app.command("loop")
-@forwards_train_options(train_cmd, loop_owns=("data", "method", "epochs", "out", "seed", "device", "horizon",
-                                              "save_at", "resume", "init", "threads", "progress"))
-@clean_errors
+@with_train_options(required=("method",), check=_loop_seed)
 def loop_cmd(
     task: Annotated[str, typer.Option(help=task_help())],
-    method: Annotated[str, typer.Option(help=_METHOD_HELP)],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
     n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
     n_traj: Annotated[str, typer.Option("--n-traj", help="Trajectories per iteration, e.g. 30 or 30,30,60 (last repeats).")] = "30",
-    epochs: Annotated[int, typer.Option(help="Training epochs per iteration (n_pl).")] = 1000,
-    seed: Annotated[int, typer.Option(help="Seed of collection (1000*seed + k) and training.")] = 0,
-    horizon: Annotated[int, typer.Option("--horizon", help="Chunk length T_h.")] = 32,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="T_a of the rollouts that warm-start collection (default T_h - T_o).")] = None,
     eval_t_a: Annotated[Optional[str], typer.Option("--eval-t-a", help="T_a values to evaluate, e.g. 1,4,8 (default: --t-a).")] = None,
     eval_t_a_last: Annotated[Optional[str], typer.Option("--eval-t-a-last", help="Extra T_a values evaluated at the last iteration only (Table 2c), e.g. 1,2,3.")] = None,
@@ -279,27 +249,25 @@ def loop_cmd(
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
-    save_at: Annotated[Optional[str], typer.Option("--save-at", help="Extra epoch counts whose checkpoints are evaluated too, e.g. 1000 (Fig. 1).")] = None,
     eval_refine: Annotated[bool, typer.Option("--eval-refine/--no-eval-refine", help="Evaluations refine the policy's rollouts (the paper's refined); off: the policy's own metrics only (sweeps).")] = True,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
-    train_options: Optional[dict] = None,
+    train=None,
 ) -> None:
-    """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. Every `sdp train` option that is a training
-    setting (and not one of the loop's own: method, epochs, seed, horizon, save-at) is an option here too."""
-    from sdp_cli.loop import LoopConfig, run_loop
+    """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. The training options are `sdp train`'s
+    (--epochs per iteration; --seed also seeds collection, 1000 * seed + k; the --save-at checkpoints are
+    evaluated too)."""
+    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, run_loop
     from sdp_cli.train import resolve_device
 
     set_threads(threads)
-    opts = dict(train_options or {})
-    cfg = LoopConfig(task=task, method=method, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
-                     epochs=epochs, seed=seed, horizon=horizon, t_a=t_a,
-                     eval_t_a=int_list(eval_t_a, "--eval-t-a"),
-                     eval_t_a_last=int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout, n_test=n_test,
-                     test_seed=test_seed, reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
-                     device=str(resolve_device(device)), executor=executor, scheduler=scheduler,
-                     train_options=opts, single_shooting=single_shooting, eval_refine=eval_refine,
-                     save_at=int_list(save_at, "--save-at"), to=to)
+    rollout = LoopRolloutConfig(t_a=t_a, eval_t_a=int_list(eval_t_a, "--eval-t-a"),
+                                eval_t_a_last=int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout,
+                                n_test=n_test, test_seed=test_seed, single_shooting=single_shooting,
+                                eval_refine=eval_refine)
+    cfg = LoopConfig(task=task, train=train, rollout=rollout, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
+                     reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
+                     device=str(resolve_device(device)), executor=executor, scheduler=scheduler, to=to)
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

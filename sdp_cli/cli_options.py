@@ -97,56 +97,88 @@ def int_list(value: Optional[str], name: str) -> tuple:
         raise SdpError(f"{name} must be comma-separated integers, got {value!r}") from None
 
 
-#: `sdp train` parameters whose TrainConfig field has another name, and how their text becomes the field's value
-TRAIN_FIELD = {"horizon": "T_h", "diffusion_steps": "K"}
-
-
-def _int_list_of(flag: str):
-    def parse(text: str) -> list[int]:
-        vals = int_list(text, flag)
-        if not vals or min(vals) <= 0:
-            raise SdpError(f"{flag} must be positive integers, got {text!r}")
-        return list(vals)
+def _list_parser(flag: str, kind: type):
+    def parse(text: str) -> list:
+        try:
+            return [kind(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise SdpError(f"{flag} must be comma-separated {'integers' if kind is int else 'numbers'}, "
+                           f"got {text!r}") from None
     return parse
 
 
-TRAIN_PARSE = {"down_dims": _int_list_of("--down-dims")}
-
-
-def forwards_train_options(train_cmd: Callable, loop_owns: tuple[str, ...]) -> Callable:
-    """Give a command every option of ``train_cmd`` (``sdp train``) that is not in ``loop_owns``: the same flags and
-    help, default None (TrainConfig's default applies). The wrapped function receives the given ones as
-    ``train_options={TrainConfig field: value}``: a training option is declared once, on ``sdp train``."""
+def _option_param(name: str, required: tuple[str, ...]):
+    """``(inspect.Parameter, parse)`` of training option ``name`` (:func:`sdp_cli.policy.config.options`)."""
     import inspect
-    from copy import copy
+    import types
+    import typing
+
+    from sdp_cli.policy.config import option_field, options
+
+    ann, default, help_ = option_field(name)
+    args = [a for a in typing.get_args(ann) if a is not type(None)]
+    optional = typing.get_origin(ann) in (typing.Union, types.UnionType)
+    base = args[0] if optional else ann
+    flag = "--" + name.replace("_", "-")
+    parse = None
+    if typing.get_origin(base) is list:
+        parse, base = _list_parser(flag, typing.get_args(base)[0]), str
+        shown = ",".join(str(v) for v in default)
+    else:
+        shown = str(default)
+    section = options()[name][0]
+    panel = f"Training options ({section})" if section else "Training options"
+    if name == "method":
+        help_ = method_help()
+    decls = [f"{flag}/--no-{flag[2:]}"] if base is bool else [flag]
+    if name in required:
+        info = typer.Option(*decls, help=help_, rich_help_panel=panel)
+        return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=Annotated[base, info]), parse
+    info = typer.Option(*decls, help=help_, rich_help_panel=panel,
+                        show_default=shown if default is not None else False)
+    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None,
+                             annotation=Annotated[Optional[base], info]), parse
+
+
+def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[[dict], None] | None = None) -> Callable:
+    """Give a command every training option of :class:`~sdp_cli.policy.config.TrainConfig` as a flag (one name
+    each: ``--horizon``, ``--sobolev-alpha``, ...; grouped by section in ``--help``), so that ``sdp train`` and
+    ``sdp loop`` declare none by hand. The wrapped function receives ``train=TrainConfig.of(given options)``
+    (the others at the config's defaults); an invalid value is one line and exit code 1. ``check(given)`` runs
+    the command's own rules first (``sdp loop``'s seed range)."""
+    import inspect
+
+    from sdp_cli.policy.config import TrainConfig, options
 
     def decorate(fn: Callable) -> Callable:
-        forwarded = []
-        for p in inspect.signature(train_cmd, eval_str=True).parameters.values():
-            if p.name in loop_owns:
-                continue
-            base, info = p.annotation.__origin__, p.annotation.__metadata__[0]
-            info = copy(info)
-            info.help = (info.help or "") + " (`sdp train`'s option; default: its default)"
-            info.show_default = False
-            forwarded.append(inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=None,
-                                               annotation=Annotated[Optional[base], info]))
-        names = [p.name for p in forwarded]
+        params, parsers = [], {}
+        for name in options():
+            param, parse = _option_param(name, required)
+            params.append(param)
+            if parse is not None:
+                parsers[name] = parse
 
         @functools.wraps(fn)
         @clean_errors
         def wrapper(**kwargs):
-            opts = {}
-            for name in names:
+            given = {}
+            for name in options():
                 value = kwargs.pop(name)
                 if value is not None:
-                    opts[TRAIN_FIELD.get(name, name)] = TRAIN_PARSE.get(name, lambda v: v)(value)
-            return fn(**kwargs, train_options=opts)
+                    given[name] = parsers[name](value) if name in parsers else value
+            if check is not None:
+                check(given)
+            return fn(**kwargs, train=TrainConfig.of(**given))
 
-        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "train_options"]
-        wrapper.__signature__ = inspect.Signature(own + forwarded)
-        wrapper.__annotations__ = {p.name: p.annotation for p in own + forwarded}
-        del wrapper.__wrapped__     # typer reads __signature__, not the wrapped function's parameters
+        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "train"]
+        # typer reads __signature__: the command's own required options first, then the training options
+        ordered = ([p for p in own if p.default is inspect.Parameter.empty]
+                   + [p for p in params if p.default is inspect.Parameter.empty]
+                   + [p for p in own if p.default is not inspect.Parameter.empty]
+                   + [p for p in params if p.default is not inspect.Parameter.empty])
+        wrapper.__signature__ = inspect.Signature([p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in ordered])
+        wrapper.__annotations__ = {p.name: p.annotation for p in ordered}
+        del wrapper.__wrapped__
         return wrapper
 
     return decorate

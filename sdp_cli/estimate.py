@@ -68,10 +68,9 @@ def training_stages(runs: dict) -> list[TrainStage]:
     out = []
     for run, cfg in runs.items():
         task = get_task(cfg.task)
-        o = cfg.train_options
         for k in range(cfg.n_algo):
             st = TrainStage(run, k, cfg.task, cfg.method, int(cfg.horizon), cfg.n_traj_at(k), int(cfg.epochs),
-                            int(o.get("batch_size", 256)), o.get("action"))
+                            int(cfg.train.data.batch_size), cfg.train.policy.action)
             if get_method(st.method).chunked:
                 st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
             else:
@@ -105,18 +104,18 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     from sdp_cli.train import train_step
 
     task = get_task(task_name)
-    cfg = TrainConfig(method=method, T_h=T_h, batch_size=B, action=action)
+    cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     torch.manual_seed(0)
     policy = make_policy(cfg, dims).to(device)
-    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr)
-    ema = EMAModel(policy.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, power=cfg.ema_power)
+    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.optim.lr)
+    ema = EMAModel(policy.parameters(), decay=cfg.optim.ema_max_decay, use_ema_warmup=True, power=cfg.optim.ema_power)
     gen = torch.Generator().manual_seed(0)
     batch = _synthetic_batch(method, dims, T_h, B, gen, device)
     g = torch.Generator(device=device).manual_seed(0)
 
     def step():   # the trainer's step (without its LR schedule: a scalar update)
-        loss, _, _ = train_step(policy, batch, opt, None, ema, g, cfg.grad_clip)
+        loss, _, _ = train_step(policy, batch, opt, None, ema, g, cfg.optim.grad_clip)
         loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
     step()
@@ -188,14 +187,15 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
         st = next(s for s in train if s.run == run)
         # collection: the naive guess at iteration 0, then policy guess and naive guess (ArgminCost)
         r["to_s"] += sum(cfg.n_traj_at(k) * ms * (1 if k == 0 else 2) for k in range(cfg.n_algo))
-        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(cfg.n_test, st.B)) / 3
+        ro = cfg.rollout
+        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(ro.n_test, st.B)) / 3
         for k in range(cfg.n_algo):
-            t_as = list(cfg.eval_t_a or (cfg.t_a,))
+            t_as = list(ro.eval_t_a or (ro.t_a,))
             if k == cfg.n_algo - 1:
-                t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
+                t_as += [t for t in ro.eval_t_a_last if t not in t_as]
             for t_a in t_as * (1 + len(cfg.save_at)):   # the final checkpoint and the save_at ones
-                if cfg.eval_refine:
-                    r["to_s"] += 2 * cfg.n_test * ms + (2 * cfg.n_test * ss if cfg.single_shooting else 0.0)
+                if ro.eval_refine:
+                    r["to_s"] += 2 * ro.n_test * ms + (2 * ro.n_test * ss if ro.single_shooting else 0.0)
                 t_a = t_a or max(1, st.T_h - 1)
                 calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).chunked else task.T
                 r["rollout_s"] += calls * fwd

@@ -119,12 +119,14 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
     if missing or not isinstance(rmeta.get("config"), dict):
         raise SdpError(f"corrupt rollout artifact {rollouts}: missing {', '.join(missing) or 'config'}")
     pcfg = rmeta.get("policy_config", {}) or {}
+    # checkpoint format 2 nests the config by section; format 1 was flat, with T_h (sdp_cli.policy.config)
+    horizon = (pcfg.get("policy") or {}).get("horizon", pcfg.get("T_h"))
     cost = np.asarray(r["cost"], float)
     row = {
         "task": rmeta.get("task"), "method": rmeta.get("method"),
         "n_traj": (rmeta.get("policy_dataset") or {}).get("n_traj"), "epochs": rmeta.get("policy_epoch"),
         "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
-        "horizon": pcfg.get("T_h"), "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
+        "horizon": horizon, "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),
         **terminal_cost_mean(r, rmeta),

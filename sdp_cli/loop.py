@@ -24,7 +24,7 @@ Solves run on the executor of ``executor``/``workers``/``scheduler`` (local pool
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Callable
 
@@ -33,82 +33,108 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.policy.config import TrainConfig, flat_options
+
+
+@dataclass(frozen=True)
+class LoopRolloutConfig:
+    """How each iteration's policy is rolled out: the warm start of the next collection (``t_a``,
+    ``k_rollout``) and the evaluation on the fixed test set."""
+
+    t_a: int | None = None         # T_a of the rollouts used to warm-start collection
+    eval_t_a: tuple = ()           # T_a values evaluated on the test set (default: t_a)
+    eval_t_a_last: tuple = ()      # extra T_a values evaluated at the last iteration (Table 2c)
+    k_rollout: int | None = None   # denoising steps at rollout (default K)
+    n_test: int = 50
+    test_seed: int = 0
+    single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
+    eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
+
+    def __post_init__(self):
+        from sdp_cli.seeds import check_seed
+
+        check_seed(self.test_seed, "test seed")
+        if self.n_test <= 0:
+            raise SdpError(f"n_test must be > 0, got {self.n_test}")
+        for name in ("eval_t_a", "eval_t_a_last"):
+            object.__setattr__(self, name, tuple(int(v) for v in getattr(self, name)))
 
 
 @dataclass(frozen=True)
 class LoopConfig:
+    """One run of Algorithm 1: its task, the typed training config (:class:`TrainConfig`: method, epochs,
+    seed, architecture, ...), the rollout settings (:class:`LoopRolloutConfig`) and where the work runs."""
+
     task: str
-    method: str
+    train: TrainConfig
+    rollout: LoopRolloutConfig = field(default_factory=LoopRolloutConfig)
     n_algo: int = 1
     n_traj: tuple = (30,)          # per iteration; the last value repeats
-    epochs: int = 1000
-    seed: int = 0
-    horizon: int = 32              # T_h
-    t_a: int | None = None         # T_a of the rollouts used to warm-start collection
-    eval_t_a: tuple = ()           # T_a values evaluated on the test set (default: t_a)
-    eval_t_a_last: tuple = ()      # extra T_a values evaluated at the last iteration (Table 2c)
-    k_rollout: int | None = None
-    n_test: int = 50
-    test_seed: int = 0
     reset_buffer: bool = True
     max_iter: int = 1000
+    to: str = "ms"                 # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
     workers: int | None = None
     device: str = "cpu"
     executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
     scheduler: str | None = None   # address of a running Dask scheduler
-    train_options: dict = field(default_factory=dict)  # extra TrainConfig fields
-    single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
-    eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
-    save_at: tuple = ()            # extra epoch counts (< epochs) whose checkpoints are evaluated too (Fig. 1)
-    to: str = "ms"                 # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
 
     def __post_init__(self):
-        from sdp_cli.seeds import check_loop_seed, check_seed
+        from sdp_cli.seeds import check_loop_seed
 
+        object.__setattr__(self, "n_traj", tuple(int(n) for n in self.n_traj))
         if self.n_algo <= 0:
             raise SdpError(f"n_algo must be > 0, got {self.n_algo}")
         check_loop_seed(self.seed, "seed", self.n_algo)
-        check_seed(self.test_seed, "test seed")
         if not self.n_traj or min(self.n_traj) <= 0:
             raise SdpError(f"n_traj must be positive, got {list(self.n_traj)}")
-        if self.epochs <= 0:
-            raise SdpError(f"epochs must be > 0, got {self.epochs}")
-        if self.n_test <= 0:
-            raise SdpError(f"n_test must be > 0, got {self.n_test}")
-        if any(not 0 < int(e) < self.epochs for e in self.save_at):
-            raise SdpError(f"save_at epochs must be in (0, epochs = {self.epochs}), got {list(self.save_at)}")
         from sdp_cli.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)
         self.validate()
 
-    def validate(self) -> None:
-        """Everything checkable before any file is written: task, method, training options, T_a."""
-        from sdp_cli.policy.config import TrainConfig
-        from sdp_cli.tasks import get_task
+    # the training settings the loop itself reads (one name each: TrainConfig's)
+    @property
+    def method(self) -> str:
+        return self.train.method
 
-        task = get_task(self.task)
+    @property
+    def seed(self) -> int:
+        return self.train.seed
+
+    @property
+    def epochs(self) -> int:
+        return self.train.data.epochs
+
+    @property
+    def horizon(self) -> int:
+        return self.train.policy.horizon
+
+    @property
+    def save_at(self) -> list[int]:
+        return self.train.save_at
+
+    def validate(self) -> None:
+        """Everything checkable before any file is written: task, TO family, T_a, k_rollout."""
+        from sdp_cli.tasks import get_task
         from sdp_cli.trajopt import check_to
 
+        task = get_task(self.task)
         check_to(self.to, task)
         if self.max_iter <= 0:
             raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
-        try:
-            tcfg = TrainConfig(method=self.method, epochs=self.epochs, seed=self.seed, T_h=self.horizon,
-                               **self.train_options)
-        except TypeError as e:
-            raise SdpError(f"invalid training option: {e}") from None
+        tcfg, r = self.train, self.rollout
         if tcfg.is_diffusion:
             if self.horizon > task.T + 1:
                 raise SdpError(f"horizon {self.horizon} is longer than the task's T + 1 = {task.T + 1}")
-            hi = self.horizon - tcfg.T_o
-            for name, values in (("t_a", () if self.t_a is None else (self.t_a,)), ("eval_t_a", self.eval_t_a),
-                                 ("eval_t_a_last", self.eval_t_a_last)):
+            hi = self.horizon - tcfg.policy.n_obs_steps
+            for name, values in (("t_a", () if r.t_a is None else (r.t_a,)), ("eval_t_a", r.eval_t_a),
+                                 ("eval_t_a_last", r.eval_t_a_last)):
                 bad = [v for v in values if not 1 <= v <= hi]
                 if bad:
                     raise SdpError(f"{name} {bad} outside [1, T_h - T_o] = [1, {hi}]")
-            if self.k_rollout is not None and not 1 <= self.k_rollout <= tcfg.K:
-                raise SdpError(f"k_rollout must be in [1, K] = [1, {tcfg.K}], got {self.k_rollout}")
+            K = tcfg.policy.diffusion_steps
+            if r.k_rollout is not None and not 1 <= r.k_rollout <= K:
+                raise SdpError(f"k_rollout must be in [1, K] = [1, {K}], got {r.k_rollout}")
 
     def n_traj_at(self, k: int) -> int:
         return int(self.n_traj[min(k, len(self.n_traj) - 1)])
@@ -116,18 +142,63 @@ class LoopConfig:
     def collect_seed(self, k: int) -> int:
         return 1000 * self.seed + k
 
+    def to_dict(self) -> dict:
+        """Plain types, nested like the config (``loop_config.json``, the runner's jobs)."""
+        d = asdict(self)
+        d["train"] = self.train.to_dict()
+        return d
 
-# settings that may change when a loop is resumed (where it runs, how much is evaluated)
-RESUMABLE_FIELDS = ("n_algo", "eval_t_a", "eval_t_a_last", "workers", "device", "executor", "scheduler",
-                    "single_shooting", "eval_refine", "code_rev", "results_version")
+    @classmethod
+    def from_dict(cls, d: dict, **override) -> "LoopConfig":
+        """From :meth:`to_dict`, or the flat layout of loop folders before the sections (migrated)."""
+        d = migrate_loop_dict(d)
+        d = {**{k: v for k, v in d.items() if k in {f.name for f in fields(cls)}}, **override}
+        return cls(**{**d, "train": TrainConfig.from_dict(d["train"]),
+                      "rollout": LoopRolloutConfig(**d.get("rollout", {}))})
+
+
+#: loop settings of the flat layout (before results version 3's sections) that moved into ``rollout``
+_ROLLOUT_KEYS = tuple(f.name for f in fields(LoopRolloutConfig))
+
+
+def migrate_loop_dict(d: dict) -> dict:
+    """A ``loop_config.json`` dict in the current layout: older ones were flat, with the training options
+    ``method, epochs, seed, horizon, save_at`` and ``train_options`` (older names) at the top."""
+    if isinstance(d.get("train"), dict):
+        return d
+    d = dict(d)
+    opts = {"method": d.pop("method"), "epochs": d.pop("epochs", 1000), "seed": d.pop("seed", 0),
+            "horizon": d.pop("horizon", 32), "save_at": list(d.pop("save_at", ())),
+            **flat_options(d.pop("train_options", None) or {})}
+    d["rollout"] = {k: d.pop(k) for k in _ROLLOUT_KEYS if k in d}
+    d["train"] = TrainConfig.of(**opts).to_dict()
+    return d
+
+
+# settings that may change when a loop is resumed (where it runs, how much is evaluated), as dotted keys
+RESUMABLE_FIELDS = ("n_algo", "rollout.eval_t_a", "rollout.eval_t_a_last", "workers", "device", "executor",
+                    "scheduler", "rollout.single_shooting", "rollout.eval_refine", "train.checkpoint_every_s",
+                    "code_rev", "results_version")
 
 
 def _config_json(cfg: LoopConfig) -> str:
+    import json
+
     from sdp_cli import RESULTS_VERSION
     from sdp_cli.data.artifacts import code_revision
 
-    return pd.Series({**asdict(cfg), "code_rev": code_revision(),
-                      "results_version": RESULTS_VERSION}).to_json(indent=2)
+    return json.dumps({**cfg.to_dict(), "code_rev": code_revision(), "results_version": RESULTS_VERSION},
+                      indent=2)
+
+
+def _dotted(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_dotted(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = list(v) if isinstance(v, tuple) else v
+    return out
 
 
 def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None:
@@ -137,7 +208,8 @@ def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None
     and the results version (:data:`sdp_cli.RESULTS_VERSION`) of the last (re)start: ``sdp loop``
     resumes across both (the artifacts record their revision); with ``same_results`` (the DVC stage)
     another results version (none recorded: version 1) counts as other settings. A code revision alone
-    never does: a comment edit must not restart 70 hours of runs."""
+    never does: a comment edit must not restart 70 hours of runs. Folders of the older flat layout are
+    compared after :func:`migrate_loop_dict`."""
     import json
 
     path = out / "loop_config.json"
@@ -147,14 +219,14 @@ def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None
                            "unknown settings); use another --out")
         return
     try:
-        old = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
+        raw = json.loads(path.read_text())
+        old = _dotted({**migrate_loop_dict(raw), "results_version": raw.get("results_version", 1)})
+    except (OSError, ValueError, KeyError, TypeError, SdpError) as e:
         raise SdpError(f"corrupt loop config {path}: {e}") from None
-    new = json.loads(_config_json(cfg))
+    new = _dotted(json.loads(_config_json(cfg)))
     bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
-    if same_results and old.get("results_version", 1) != new["results_version"]:
+    if same_results and old["results_version"] != new["results_version"]:
         bad.append("results_version")
-        old.setdefault("results_version", 1)
     if bad:
         diffs = ", ".join(f"{k}={old[k]!r} (now {new[k]!r})" for k in bad)
         raise SdpError(f"{out} holds a loop run with other settings: {diffs}; use another --out")
@@ -185,7 +257,7 @@ def _train_done(policy_dir: Path) -> bool:
 def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra: dict,
                        log: Callable[[str], None], last: bool = False, progress: bool = False) -> pd.DataFrame:
     """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a
-    (without refine when ``cfg.eval_refine`` is off: the policy's own metrics only)."""
+    (without refine when ``cfg.rollout.eval_refine`` is off: the policy's own metrics only)."""
     from sdp_cli.evaluate import evaluation_artifacts, evaluation_row, write_evaluation
     from sdp_cli.progress import count_progress
     from sdp_cli.refine import refine
@@ -196,9 +268,10 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     t0 = time.perf_counter()
     new_work = reused = 0      # artifacts made by this call / found made by an earlier one
     rows, artifacts = [], []
-    t_as = list(cfg.eval_t_a or (cfg.t_a,))
+    r = cfg.rollout
+    t_as = list(r.eval_t_a or (r.t_a,))
     if last:
-        t_as += [t for t in cfg.eval_t_a_last if t not in t_as]
+        t_as += [t for t in r.eval_t_a_last if t not in t_as]
     # the final policy, then the checkpoints kept at the save_at epochs (Fig. 1's two budgets)
     ckpts = [(policy_dir, "")] + [(policy_dir / f"epoch_{e}.pt", f"e{e}-") for e in sorted(cfg.save_at)]
     for (ckpt, prefix), t_a in ((c, t) for c in ckpts for t in t_as):
@@ -209,19 +282,19 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
         else:
             new_work += 1
             with count_progress(f"rollout {tag} (time steps)", None, progress) as on_step:
-                _, s = rollout(ckpt, ro, RolloutConfig(n=cfg.n_test, seed=cfg.test_seed, t_a=t_a,
-                                                             k_rollout=cfg.k_rollout), device=cfg.device,
+                _, s = rollout(ckpt, ro, RolloutConfig(n=r.n_test, seed=r.test_seed, t_a=t_a,
+                                                             k_rollout=r.k_rollout), device=cfg.device,
                                on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
-        if cfg.eval_refine and rf.exists():
+        if r.eval_refine and rf.exists():
             reused += 1
-        elif cfg.eval_refine:
+        elif r.eval_refine:
             new_work += 1
             with count_progress(f"refine {tag} (instances)", None, progress) as on_done:
-                refine(ro, rf, max_iter=cfg.max_iter, single_shooting=cfg.single_shooting, workers=cfg.workers,
+                refine(ro, rf, max_iter=cfg.max_iter, single_shooting=r.single_shooting, workers=cfg.workers,
                        executor=cfg.executor or "local", scheduler=cfg.scheduler, progress=on_done, to=cfg.to)
-        rows.append(evaluation_row(ro, rf if cfg.eval_refine else None, extra))
-        artifacts.append(evaluation_artifacts(ro, rf if cfg.eval_refine else None))
+        rows.append(evaluation_row(ro, rf if r.eval_refine else None, extra))
+        artifacts.append(evaluation_artifacts(ro, rf if r.eval_refine else None))
     df = pd.DataFrame(rows)
     # the measured wall time of the evaluation (rollouts, refinement with every baseline, evaluation), not a sum
     # of parts. A resume that found every artifact made keeps the recorded one; one that found some made records
@@ -242,7 +315,6 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
     from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.evaluate import is_timing_column
-    from sdp_cli.policy.config import TrainConfig
     from sdp_cli.train import train
 
     out = Path(out)
@@ -259,8 +331,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                                  max_iter=cfg.max_iter,
                                  policy=str(prev_policy) if prev_policy else None,
                                  policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
-                                 t_a=cfg.t_a if prev_policy else None,
-                                 k_rollout=cfg.k_rollout if prev_policy else None, to=cfg.to)
+                                 t_a=cfg.rollout.t_a if prev_policy else None,
+                                 k_rollout=cfg.rollout.k_rollout if prev_policy else None, to=cfg.to)
             from sdp_cli.progress import collect_progress
 
             with collect_progress(ccfg.n_traj, progress) as on_update:
@@ -275,13 +347,10 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
         policy_dir = d / "policy"
         if not _train_done(policy_dir):
             log(f"[it{k}] train {cfg.method} for {cfg.epochs} epochs" + (" (init from previous)" if prev_policy else ""))
-            tcfg = TrainConfig.from_dict({**TrainConfig().to_dict(), "method": cfg.method, "epochs": cfg.epochs,
-                                          "seed": cfg.seed, "T_h": cfg.horizon, "save_at": list(cfg.save_at),
-                                          **cfg.train_options})
-            train(train_data, policy_dir, tcfg, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
+            train(train_data, policy_dir, cfg.train, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,
                   log=lambda s: None)
-        log(f"[it{k}] evaluate on {cfg.n_test} test instances")
+        log(f"[it{k}] evaluate on {cfg.rollout.n_test} test instances")
         df = run_iteration_eval(policy_dir, d / "eval", cfg, {"run": out.name, "iteration": k, "loop_seed": cfg.seed,
                                                                    "n_algo": cfg.n_algo},
                                 log,

@@ -17,7 +17,7 @@ An experiment file lists *groups*; each group is a sweep::
         eval_t_a: [8]          # T_a values evaluated on the test set at every iteration
         eval_t_a_last: [1, 4]  # extra T_a values evaluated at the last iteration only (Table 2c)
         n_test: 50
-        train: {batch_size: 256, alpha_sobolev: 1.0}   # optional TrainConfig fields
+        train: {batch_size: 256, sobolev_alpha: 1.0}   # optional: any other training option (`sdp train --help`)
         tag: h16               # optional: appended to the run names (groups that differ only in settings)
 
 Every (group, method, seed, n_traj) is one *run*: one ``sdp loop``, Algorithm 1 as
@@ -33,7 +33,6 @@ of the experiment in parallel through the executor of ``SDP_EXECUTOR``/``SDP_WOR
 from __future__ import annotations
 
 import itertools
-from dataclasses import fields
 from pathlib import Path
 
 import yaml
@@ -41,25 +40,34 @@ import yaml
 from sdp_cli.errors import SdpError
 from sdp_cli.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
 
-#: TrainConfig fields a group sets elsewhere (``train:`` may set the others)
-_GROUP_OWNED = {"method", "epochs", "seed", "T_h", "save_at"}
+#: training options a group sets with its own keys (a sweep: ``methods``, ``seeds``; or the group-level
+#: ``epochs``, ``horizon``, ``save_at``, of the same names); ``train:`` may set every other one
+_GROUP_OWNED = {"method", "epochs", "seed", "horizon", "save_at"}
 
 
 def train_option_names() -> set[str]:
-    """The keys a group's ``train:`` may set: TrainConfig fields not owned by the group."""
-    from sdp_cli.policy.config import TrainConfig
+    """The keys a group's ``train:`` may set: the training options (:func:`sdp_cli.policy.config.options`)
+    not owned by the group."""
+    from sdp_cli.policy.config import options
 
-    return {f.name for f in fields(TrainConfig)} - _GROUP_OWNED
+    return set(options()) - _GROUP_OWNED
 
 
 def train_option_type(name: str) -> str:
-    """The :func:`sdp_cli.experiment.type_ok` spec of a TrainConfig field, from its annotation."""
-    from sdp_cli.policy.config import TrainConfig
+    """The :func:`sdp_cli.experiment.type_ok` spec of a training option, from its field's annotation."""
+    import types
+    import typing
 
-    ann = str({f.name: f.type for f in fields(TrainConfig)}[name]).replace(" ", "")
-    opt = "|None" in ann
-    base = ann.replace("|None", "")
-    spec = {"int": "int", "float": "float", "bool": "bool", "str": "str", "list": "[float]", "tuple": "[float]"}[base]
+    from sdp_cli.policy.config import option_field
+
+    ann = option_field(name)[0]
+    args = [a for a in typing.get_args(ann) if a is not type(None)]
+    opt = typing.get_origin(ann) in (typing.Union, types.UnionType)
+    base = args[0] if opt else ann
+    if typing.get_origin(base) is list:
+        spec = "[" + typing.get_args(base)[0].__name__ + "]"
+    else:
+        spec = base.__name__
     return spec + ("?" if opt else "")
 
 
@@ -74,7 +82,10 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
         where = group_where(name, gi)
         bad = set(g["train"] or {}) - train_option_names()
         if bad:
-            raise SdpError(f"{where}: unknown train option(s) {sorted(bad)}; known: "
+            from sdp_cli.policy.config import RENAMED
+
+            hint = "".join(f" ({k} is now {RENAMED[k]})" for k in sorted(bad) if k in RENAMED)
+            raise SdpError(f"{where}: unknown train option(s) {sorted(bad)}{hint}; known: "
                            f"{', '.join(sorted(train_option_names()))}")
         for key, value in (g["train"] or {}).items():
             if not type_ok(value, train_option_type(key)):
@@ -92,16 +103,20 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
 
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
-    from sdp_cli.loop import LoopConfig
+    from sdp_cli.loop import LoopConfig, LoopRolloutConfig
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.seeds import check_loop_seed
 
-    return LoopConfig(
-        task=g["task"], method=method, n_algo=g["n_algo"],
-        n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), epochs=g["epochs"],
-        seed=seed, horizon=g["horizon"], t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]),
-        eval_t_a_last=tuple(g["eval_t_a_last"]), k_rollout=g["k_rollout"], n_test=g["n_test"],
-        test_seed=g["test_seed"], max_iter=g["max_iter"], workers=1, device="cpu",
-        train_options=dict(g["train"] or {}), single_shooting=g["single_shooting"],
-        save_at=tuple(int(e) for e in g["save_at"] if e < g["epochs"]), to=g["to"])
+    check_loop_seed(seed, "seed", g["n_algo"])   # the loop's rule (collection seeds) before the trainer's
+
+    train = TrainConfig.of(**{**(g["train"] or {}), "method": method, "epochs": g["epochs"], "seed": seed,
+                              "horizon": g["horizon"], "save_at": [int(e) for e in g["save_at"] if e < g["epochs"]]})
+    rollout = LoopRolloutConfig(t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]), eval_t_a_last=tuple(g["eval_t_a_last"]),
+                                k_rollout=g["k_rollout"], n_test=g["n_test"], test_seed=g["test_seed"],
+                                single_shooting=g["single_shooting"])
+    return LoopConfig(task=g["task"], train=train, rollout=rollout, n_algo=g["n_algo"],
+                      n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), max_iter=g["max_iter"],
+                      workers=1, device="cpu", to=g["to"])
 
 
 def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: Path = Path(".")) -> dict:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -51,9 +50,7 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     def log(line: str) -> None:   # one line per stage of each run (what `dvc repro` shows while it trains)
         print(f"{name}: {line.strip()}", file=sys.stderr, flush=True)
 
-    cfg = LoopConfig(**{**config, "n_traj": tuple(config["n_traj"]), "eval_t_a": tuple(config["eval_t_a"]),
-                        "eval_t_a_last": tuple(config["eval_t_a_last"]), "save_at": tuple(config["save_at"]),
-                        "device": str(resolve_device(device))})
+    cfg = LoopConfig.from_dict(config, device=str(resolve_device(device)))
     try:
         return run_loop(cfg, out, log=log).to_dict("records")
     except KeyboardInterrupt:
@@ -155,7 +152,7 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
             log(f"  {key}: {str(e).split(': ', 1)[-1].removesuffix('; use another --out')}; moved the old run "
                 f"to {moved} and starting it over")
     keys = list(runs)
-    argsets = [(asdict(runs[k]), str(out / k), device) for k in keys]
+    argsets = [(runs[k].to_dict(), str(out / k), device) for k in keys]
     tables, failed = [], []
     with make_executor(executor, workers, scheduler) as ex:
         log(f"{len(keys)} runs of {name!r} on {ex.describe()}")

@@ -23,7 +23,6 @@ import csv
 import io
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -34,11 +33,9 @@ from sdp_cli.errors import SdpError
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_timing, portable_path, save_timing
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import CHECKPOINT_NAME, file_sha256, load_checkpoint, save_checkpoint
-from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.config import TrainConfig, resolved_alpha
 from sdp_cli.policy.registry import make_policy
 
-ARCH_FIELDS = ("T_h", "T_o", "K", "down_dims", "kernel_size", "n_groups", "step_embed_dim", "clip_sample",
-               "action", "mlp_hidden")
 METRICS_EVERY_S = 5.0   # metrics.csv is appended to this often (and rewritten with each checkpoint)
 METRIC_FIELDS = ("step", "epoch", "loss", "dp", "sobolev", "lr", "grad_norm")
 
@@ -84,7 +81,7 @@ def train_step(policy, batch: dict, opt, lr_scheduler, ema, generator: torch.Gen
 def sobolev_scale_of(policy, tensors: dict) -> float:
     """The Sobolev term's factor on this dataset: :func:`balance_scale` (``sobolev_balance``) or 1."""
     cfg = policy.config
-    if not (cfg.sobolev and cfg.sobolev_balance):
+    if not (cfg.uses_sobolev and cfg.sobolev.balance):
         return 1.0
     from sdp_cli.losses.sobolev import balance_scale
 
@@ -96,7 +93,7 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen
     normalizer and its Sobolev scale set; ``widen``: the given normalizer's ranges are extended to cover this
     dataset (``--init``)."""
     cls = cfg.policy_class
-    ds, action = cls.make_dataset(cfg, task, arrays, cfg.sobolev)
+    ds, action = cls.make_dataset(cfg, task, arrays, cfg.uses_sobolev)
     dims = cls.dims_for(cfg, task, action)
     policy = make_policy(cfg, dims)
     norm = fit_normalizer(task, arrays, action) if normalizer is None or widen else normalizer
@@ -104,10 +101,10 @@ def prepare(cfg: TrainConfig, task, arrays, normalizer=None, device="cpu", widen
         norm = normalizer.union(norm)
     policy.normalizer.load_state_dict(norm.state_dict())
     tensors = ds.tensors(policy.normalizer, device)
-    if cfg.sobolev and cfg.sobolev_cap is not None:
+    if cfg.uses_sobolev and cfg.sobolev.cap is not None:
         from sdp_cli.losses.sobolev import capped_weights
 
-        tensors["sob_weight"] = capped_weights(tensors["jac"][:, cfg.T_o:], cfg.sobolev_cap)
+        tensors["sob_weight"] = capped_weights(tensors["jac"][:, cfg.policy.n_obs_steps:], cfg.sobolev.cap)
     policy.sobolev_scale = sobolev_scale_of(policy, tensors)
     return policy.to(device), tensors, ds.epoch_size(), action, dims
 
@@ -164,8 +161,8 @@ class MetricsLog:
 def reconcile_config(cfg: TrainConfig, ck_path: Path, resume: bool, init) -> tuple[TrainConfig, dict | None,
                                                                                   dict | None]:
     """``(cfg, prev, init_ck)``: the config a run trains with. ``--resume``: the run's own (other settings are
-    refused, ``alpha_sobolev`` None means the task's default); ``--init``: the init checkpoint's
-    architecture fields win. ``prev`` / ``init_ck`` are the loaded checkpoints (or None)."""
+    refused, ``sobolev_alpha`` None means the task's default); ``--init``: the init checkpoint's
+    architecture (the ``policy`` section) wins. ``prev`` / ``init_ck`` are the loaded checkpoints (or None)."""
     out = ck_path.parent
     if out.exists() and not out.is_dir():
         raise SdpError(f"--out {out} exists and is not a folder")
@@ -177,10 +174,10 @@ def reconcile_config(cfg: TrainConfig, ck_path: Path, resume: bool, init) -> tup
         stored = TrainConfig.from_dict(prev["config"])
         if stored.method != cfg.method:
             raise SdpError(f"cannot resume: {ck_path} is a {stored.method!r} run, not {cfg.method!r}")
-        skip = {"checkpoint_every_s"} | (set(ARCH_FIELDS) if prev.get("init") else set())  # --init's win
-        old_d, new_d = stored.to_dict(), cfg.to_dict()
+        skip = {"checkpoint_every_s"} | (set(stored.architecture()) if prev.get("init") else set())  # --init's win
+        old_d, new_d = stored.options(), cfg.options()
         changed = [f"{k}={new_d[k]!r} (run: {old_d[k]!r})" for k in old_d if k not in skip and old_d[k] != new_d[k]
-                   and not (k == "alpha_sobolev" and new_d[k] is None)]   # None: the task's default
+                   and not (k == "sobolev_alpha" and new_d[k] is None)]   # None: the task's default
         if changed:
             raise SdpError(f"cannot resume {ck_path} with other settings: {', '.join(changed)}; resume with the "
                            f"run's options or train into another --out")
@@ -191,14 +188,14 @@ def reconcile_config(cfg: TrainConfig, ck_path: Path, resume: bool, init) -> tup
         init_cfg = TrainConfig.from_dict(init_ck["config"])
         if init_cfg.method != cfg.method:
             raise SdpError(f"--init checkpoint is a {init_cfg.method!r} policy, not {cfg.method!r}")
-        cfg = TrainConfig.from_dict({**cfg.to_dict(), **{k: getattr(init_cfg, k) for k in ARCH_FIELDS}})
+        cfg = cfg.with_options(**init_cfg.architecture())
     return cfg, prev, init_ck
 
 
 def _load_data(data, cfg: TrainConfig, prev: dict | None, init_ck: dict | None, ck_path: Path):
     """``(arrays, meta, task, sha256)`` of the dataset, checked against the resumed run / init checkpoint."""
     ref_task = (prev or init_ck or {}).get("task")
-    arrays, meta, task = load_dataset(data, require_gains=cfg.sobolev, task_name=ref_task)
+    arrays, meta, task = load_dataset(data, require_gains=cfg.uses_sobolev, task_name=ref_task)
     fingerprint = file_sha256(data)
     for ref, what in ((prev, "resumed run"), (init_ck, "--init checkpoint")):
         if ref is not None and ref["task"] != meta["task"]:
@@ -214,15 +211,16 @@ def _optimisation(cfg: TrainConfig, policy, total: int, init_ck: dict | None, fi
     from diffusers.optimization import get_scheduler
     from diffusers.training_utils import EMAModel
 
-    warmup = cfg.warmup_steps if cfg.warmup_steps is not None else min(500, total // 10)
-    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
+    o = cfg.optim
+    warmup = o.warmup_steps if o.warmup_steps is not None else min(500, total // 10)
+    opt = torch.optim.AdamW(policy.parameters(), lr=o.lr, betas=tuple(o.betas), weight_decay=o.weight_decay,
                             foreach=True)   # one fused pass over the ~200 tensors (bitwise the same result)
     sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
     gen = torch.Generator().manual_seed(cfg.seed)   # CPU: the same draws on CPU and GPU
     if init_ck is not None:
         policy.load_state_dict(init_ck["ema_model"] or init_ck["model"])
-    ema = EMAModel(policy.parameters(), decay=cfg.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
-                   power=cfg.ema_power)
+    ema = EMAModel(policy.parameters(), decay=o.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
+                   power=o.ema_power)
     if init_ck is not None:
         policy.load_state_dict(init_ck["model"])
         policy.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's
@@ -256,8 +254,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     ck_path = out / CHECKPOINT_NAME
     cfg, prev, init_ck = reconcile_config(cfg, ck_path, resume, init)
     arrays, meta, task, fingerprint = _load_data(data, cfg, prev, init_ck, ck_path)
-    if cfg.alpha_sobolev is None:
-        cfg = replace(cfg, alpha_sobolev=float(task.alpha_sobolev))
+    cfg = resolved_alpha(cfg, task)
     torch.manual_seed(cfg.seed)
     norm = None
     if init_ck is not None or prev is not None:
@@ -267,8 +264,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
     fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
     n_samples = next(iter(tensors.values())).shape[0]
-    steps_per_epoch = epoch_steps(E, cfg.batch_size)
-    total = cfg.epochs * steps_per_epoch
+    B = cfg.data.batch_size
+    steps_per_epoch = epoch_steps(E, B)
+    total = cfg.data.epochs * steps_per_epoch
     opt, sched, ema, gen = _optimisation(cfg, policy, total, init_ck, fitted_norm)
     step, wall0 = 0, 0.0
     if prev is not None:
@@ -304,10 +302,10 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 
     n_params = sum(p.numel() for p in policy.parameters())
     log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
-        f"{steps_per_epoch} step(s) of <= {min(cfg.batch_size, E)} (batch size {cfg.batch_size}, drawn without "
-        f"replacement); {cfg.epochs} epochs = {total} steps; "
+        f"{steps_per_epoch} step(s) of <= {min(B, E)} (batch size {B}, drawn without "
+        f"replacement); {cfg.data.epochs} epochs = {total} steps; "
         f"{n_params} parameters; device {dev}" +
-        (f"; alpha_Sobolev {cfg.alpha_sobolev:g} x balance {policy.sobolev_scale:.3g}" if cfg.sobolev else "") +
+        (f"; alpha_Sobolev {cfg.sobolev.alpha:g} x balance {policy.sobolev_scale:.3g}" if cfg.uses_sobolev else "") +
         (f"; resuming at step {step}" if prev is not None else ""))
     t0 = time.perf_counter()
     last_ck = time.perf_counter()
@@ -324,13 +322,13 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                 epoch, j = divmod(step, steps_per_epoch)
                 if epoch != order_epoch:   # this epoch's E samples, without replacement
                     order, order_epoch = epoch_indices(n_samples, E, cfg.seed, epoch).to(dev), epoch
-                idx = order[j * cfg.batch_size:(j + 1) * cfg.batch_size]
+                idx = order[j * B:(j + 1) * B]
                 batch = {k: v[idx] for k, v in tensors.items()}
                 try:
-                    loss, parts, gnorm = train_step(policy, batch, opt, sched, ema, gen, cfg.grad_clip)
+                    loss, parts, gnorm = train_step(policy, batch, opt, sched, ema, gen, cfg.optim.grad_clip)
                 except Diverged as e:
                     raise SdpError(f"training diverged at step {step} (loss {e.loss}); "
-                                   f"try a lower --lr or --alpha-sobolev") from None
+                                   f"try a lower --lr or --sobolev-alpha") from None
                 step += 1
                 row = metrics.add(step, steps_per_epoch, loss, parts, sched.get_last_lr()[0], gnorm)
                 if step % 10 == 0 or step == total:

@@ -26,7 +26,7 @@ from sdp_cli.train import train
 from synthetic_dataset import write_dataset
 
 runner = CliRunner()
-TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "batch_size": 32, "T_h": 8}
+TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "batch_size": 32, "horizon": 8}
 
 
 def _fails_cleanly(r, *needles):
@@ -41,7 +41,7 @@ def run(tmp_path_factory):
     """A pendulum dataset, a tiny DP policy, its rollouts and their refinement."""
     root = tmp_path_factory.mktemp("bad")
     data, _ = collect(CollectConfig(task="pendulum", n_traj=2, seed=0), root / "data.npz", workers=1)
-    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **TINY, "method": "dp", "epochs": 2})
+    cfg = TrainConfig.of(**{**TINY, "method": "dp", "epochs": 2})
     train(data, root / "pol", cfg, device="cpu", progress=False, log=lambda s: None)
     out = {"data": data, "pol": root / "pol", "file": root / "a_file"}
     out["file"].write_text("x")
@@ -61,7 +61,7 @@ def test_train_unwritable_out_and_bad_numbers(run, tmp_path):
                             "--out", str(run["file"] / "sub")])
     _fails_cleanly(r, "cannot create the run folder")
     for opt, val, msg in (("--lr", "-1", "lr must be"), ("--lr", "nan", "lr must be"),
-                          ("--batch-size", "0", "batch_size must be"), ("--alpha-sobolev", "-2", "alpha_sobolev")):
+                          ("--batch-size", "0", "batch_size must be"), ("--sobolev-alpha", "-2", "sobolev_alpha")):
         r = runner.invoke(app, ["train", "--data", str(run["data"]), "--method", "sdp", "--epochs", "1",
                                 "--horizon", "8", opt, val, "--out", str(tmp_path / "x")])
         _fails_cleanly(r, msg)
@@ -250,7 +250,7 @@ def test_task_options_survive_policy_rollout_and_refine(tmp_path):
 
     data, _ = collect(CollectConfig(task="pendulum", n_traj=2, seed=0, task_options={"T": 24}), tmp_path / "d.npz",
                       workers=1)
-    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **TINY, "method": "dp", "epochs": 1})
+    cfg = TrainConfig.of(**{**TINY, "method": "dp", "epochs": 1})
     train(data, tmp_path / "pol", cfg, device="cpu", progress=False, log=lambda s: None)
     pol = load_policy(tmp_path / "pol")
     assert pol.task_options == {"T": 24} and pol.task.T == 24

@@ -62,7 +62,7 @@ def test_dvc_exp_run_set_param_changes_a_group_setting(tmp_path):
     out = _run(["dvc", "exp", "run", "-S", "pipelines/tinyexp.yaml:groups.g.epochs=3"], work, env)
     assert "Ran experiment" in out
     cfg = json.loads((work / "runs" / "tinyexp" / "pendulum-dp-n2-s0" / "loop_config.json").read_text())
-    assert cfg["epochs"] == 3                                  # the run was made with the new setting
+    assert cfg["train"]["data"]["epochs"] == 3                 # the run was made with the new setting
     assert list((work / "runs" / "superseded" / "tinyexp").iterdir())   # the old run moved aside, not deleted
     diff = _run(["dvc", "params", "diff"], work, env)
     assert "groups.g.epochs" in diff and "2" in diff and "3" in diff

@@ -19,7 +19,7 @@ from sdp_cli.policy.config import TrainConfig
 from sdp_cli.train import train
 from synthetic_dataset import write_dataset
 
-TINY = dict(T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=8, checkpoint_every_s=1e9)
+TINY = dict(horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=8, checkpoint_every_s=1e9)
 
 
 def quiet(*_):
@@ -41,7 +41,7 @@ def reference(data, tmp_path_factory):
     import torch
 
     out = tmp_path_factory.mktemp("ref") / "run"
-    cfg = TrainConfig(method="sdp", epochs=60, **TINY)
+    cfg = TrainConfig.of(method="sdp", epochs=60, **TINY)
     n = torch.get_num_threads()
     torch.set_num_threads(1)       # as the tests (the autouse fixture is per test)
     try:
@@ -81,11 +81,12 @@ def test_ctrl_c_during_a_loop_then_the_same_command_gives_the_same_results(tmp_p
 
     import pandas as pd
 
-    from sdp_cli.loop import LoopConfig, run_loop
+    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, run_loop
 
-    cfg = LoopConfig(task="pendulum", method="sdp", n_traj=(2,), epochs=150, horizon=8, t_a=4, n_test=3, workers=1,
-                     eval_refine=False, train_options={"batch_size": 8, "down_dims": [8, 16], "n_groups": 4,
-                                                       "step_embed_dim": 8})
+    train = TrainConfig.of(method="sdp", epochs=150, horizon=8, batch_size=8, down_dims=[8, 16], n_groups=4,
+                           step_embed_dim=8)
+    cfg = LoopConfig(task="pendulum", train=train, rollout=LoopRolloutConfig(t_a=4, n_test=3, eval_refine=False),
+                     n_traj=(2,), workers=1)
     ref = run_loop(cfg, tmp_path / "ref", log=quiet)
     out = tmp_path / "run"
 

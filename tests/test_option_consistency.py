@@ -1,21 +1,22 @@
-"""Training options are declared once, as TrainConfig fields, and mean the same everywhere: every `sdp train`
-option names a field, `sdp loop` forwards its training options under the same flags as `sdp train`, and the
-experiment files' `train:` keys are exactly the fields a group does not set itself."""
+"""Training options are declared once, as fields of the typed TrainConfig sections, and mean the same
+everywhere: `sdp train` and `sdp loop` get every option under the same flag (generated, not hand-listed), an
+experiment group's `train:` takes every option the group does not set itself, with the field's type, and the
+stored configs of older checkpoints and loop folders migrate to the same options."""
 
 from __future__ import annotations
 
-from dataclasses import fields
+import json
 
+import pytest
 import typer
 
 from sdp_cli.cli import app
-from sdp_cli.pipeline import _GROUP_OWNED, train_option_names
-from sdp_cli.policy.config import TrainConfig
+from sdp_cli.errors import SdpError
+from sdp_cli.pipeline import _GROUP_OWNED, train_option_names, train_option_type
+from sdp_cli.policy.config import RENAMED, TrainConfig, flat_options, options
 
-#: `sdp train` parameters that are not TrainConfig fields (where the run goes, how it runs) and the
-#: ones whose CLI name differs from the field
+#: `sdp train` parameters that are not training options (where the run goes, how it runs)
 NOT_CONFIG = {"data", "out", "device", "resume", "init", "threads", "progress"}
-RENAMED = {"horizon": "T_h", "diffusion_steps": "K"}
 
 
 def _params(command: str) -> dict:
@@ -23,38 +24,61 @@ def _params(command: str) -> dict:
     return {p.name: p for p in cmd.params}
 
 
-def test_every_train_option_is_a_config_field():
-    names = {f.name for f in fields(TrainConfig)}
-    for name in _params("train"):
-        if name not in NOT_CONFIG:
-            assert RENAMED.get(name, name) in names, f"`sdp train` option {name} is no TrainConfig field"
-
-
-def test_loop_and_pipeline_pass_train_options_under_the_same_flags():
-    """`sdp loop` has every `sdp train` training option that is not one of its own (generated from `sdp train`'s
-    declarations: the same flags, default None = TrainConfig's default), and nothing else of `sdp train`'s."""
+def test_every_training_option_is_a_flag_of_train_and_loop_under_one_name():
     train, loop = _params("train"), _params("loop")
-    names = {f.name for f in fields(TrainConfig)}
-    assert train_option_names() == names - _GROUP_OWNED      # pipelines/*.yaml `train: {field: value}`
-    assert _GROUP_OWNED <= names
-    loop_own = {"method", "epochs", "seed", "horizon", "save_at", "device", "threads", "progress", "out"}
-    forwarded = {n for n in train if n not in NOT_CONFIG and n not in loop_own}
-    assert forwarded == {"batch_size", "lr", "diffusion_steps", "down_dims", "alpha_sobolev", "sobolev_balance",
-                         "sobolev_path", "n_proj", "sobolev_mode", "sobolev_fraction", "sobolev_cap", "action"}
-    for key in forwarded:
-        assert key in loop, key
-        assert loop[key].opts == train[key].opts and loop[key].secondary_opts == train[key].secondary_opts, key
-        assert loop[key].default is None, key
-        assert RENAMED.get(key, key) in names, key       # and each is a TrainConfig field
+    assert set(train) - NOT_CONFIG == set(options())
+    assert set(options()) <= set(loop)
+    for name in options():
+        assert train[name].opts == loop[name].opts == ["--" + name.replace("_", "-")], name
+        assert train[name].help == loop[name].help and train[name].help, name
+        assert train[name].default is None and loop[name].default is None, name    # None: the config's default
+    assert train["method"].required and loop["method"].required
+    assert "T_h" not in options() and "K" not in options()      # one name per quantity: horizon, diffusion_steps
 
 
-def test_shared_options_are_declared_once():
-    """--workers/--executor/--scheduler (solves), --device, --threads and --progress mean the same in every
-    command that has them (one Annotated alias each in sdp_cli.cli)."""
-    groups = {"workers": ("collect", "refine", "loop"), "executor": ("collect", "refine", "loop"),
-              "scheduler": ("collect", "refine", "loop"), "device": ("train", "rollout", "loop"),
-              "threads": ("collect", "train", "rollout", "loop"), "progress": ("collect", "refine", "train", "loop"),
-              "to": ("collect", "refine", "loop")}
-    for opt, commands in groups.items():
-        decls = {(tuple(_params(c)[opt].opts), _params(c)[opt].help, _params(c)[opt].default) for c in commands}
-        assert len(decls) == 1, (opt, decls)
+def test_experiment_train_keys_are_the_options_a_group_does_not_own():
+    assert _GROUP_OWNED <= set(options())
+    assert train_option_names() == set(options()) - _GROUP_OWNED
+    assert {n: train_option_type(n) for n in ("down_dims", "betas", "sobolev_alpha", "clip_sample", "warmup_steps")} \
+        == {"down_dims": "[int]", "betas": "[float]", "sobolev_alpha": "float?", "clip_sample": "bool",
+            "warmup_steps": "int?"}
+
+
+def test_options_round_trip_and_older_flat_configs_migrate():
+    cfg = TrainConfig.of(method="sdp", horizon=16, diffusion_steps=10, sobolev_alpha=0.5, sobolev_n_proj=2,
+                         lr=3e-4, down_dims=[8, 16], n_groups=4, epochs=7, save_at=[3])
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert TrainConfig.of(**cfg.options()) == cfg
+    assert cfg.policy.horizon == 16 and cfg.sobolev.alpha == 0.5 and cfg.optim.lr == 3e-4 and cfg.data.epochs == 7
+    old = {"method": "sdp", "T_h": 16, "K": 10, "alpha_sobolev": 0.5, "n_proj": 2, "lr": 3e-4, "down_dims": [8, 16],
+           "n_groups": 4, "epochs": 7, "save_at": [3], "betas": [0.95, 0.999], "T_o": 1}   # format_version 1
+    assert TrainConfig.from_dict(old) == cfg
+    assert flat_options(old)["horizon"] == 16 and set(RENAMED.values()) <= set(options())
+    with pytest.raises(SdpError, match=r"unknown training option\(s\) \['T_h'\] \(T_h is now horizon\)"):
+        TrainConfig.of(T_h=8)
+
+
+def test_a_loop_folder_of_the_flat_layout_resumes_with_the_same_settings_only(tmp_path):
+    """loop_config.json written before the sections (flat, training options in `train_options` with older names)
+    is migrated before the comparison: the same settings resume, another one is refused by its dotted name."""
+    from sdp_cli import RESULTS_VERSION
+    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, check_resume
+
+    train = TrainConfig.of(method="sdp", epochs=5, horizon=8, seed=2, save_at=[2], down_dims=[8, 16], n_groups=4,
+                           sobolev_alpha=0.001)
+    cfg = LoopConfig(task="pendulum", train=train, rollout=LoopRolloutConfig(t_a=4, n_test=3), n_traj=(2,))
+    flat = {"task": "pendulum", "method": "sdp", "n_algo": 1, "n_traj": [2], "epochs": 5, "seed": 2, "horizon": 8,
+            "t_a": 4, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 3, "test_seed": 0,
+            "reset_buffer": True, "max_iter": 1000, "workers": 4, "device": "cpu", "executor": None,
+            "scheduler": None, "train_options": {"down_dims": [8, 16], "n_groups": 4, "alpha_sobolev": 0.001},
+            "single_shooting": False, "eval_refine": True, "save_at": [2], "to": "ms", "code_rev": "0" * 40,
+            "results_version": RESULTS_VERSION}
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "loop_config.json").write_text(json.dumps(flat))
+    check_resume(cfg, out, same_results=True)                  # the same run: resumes
+    assert LoopConfig.from_dict(flat, workers=None) == cfg
+    (out / "loop_config.json").write_text(json.dumps({**flat, "train_options": {**flat["train_options"],
+                                                                                  "alpha_sobolev": 1.0}}))
+    with pytest.raises(SdpError, match=r"train\.sobolev\.alpha=1\.0 \(now 0\.001\)"):
+        check_resume(cfg, out)

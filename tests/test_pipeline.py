@@ -33,9 +33,9 @@ def test_fig2_runs_and_selection(tmp_path):
     runs = loop_configs("fig2", load_experiment("fig2", root=ROOT))
     assert len(runs) == 4 * 5 and {c.seed for c in runs.values()} == {0, 1, 2, 3, 4}   # 4 methods x 5 seeds
     c = runs["double_pendulum-sdp-n30-s0"]
-    assert c.n_algo == 5 and c.epochs == 3000 and c.horizon == 16 and c.t_a == 4 and c.single_shooting
-    assert list(c.eval_t_a_last) == [t for t in range(1, 16) if t != 4]
-    assert runs["double_pendulum-pddp_s-n30-s4"].eval_t_a_last == ()
+    assert c.n_algo == 5 and c.epochs == 3000 and c.horizon == 16 and c.rollout.t_a == 4 and c.rollout.single_shooting
+    assert list(c.rollout.eval_t_a_last) == [t for t in range(1, 16) if t != 4]
+    assert runs["double_pendulum-pddp_s-n30-s4"].rollout.eval_t_a_last == ()
     params = tmp_path / "params.yaml"
     params.write_text("experiment: small\nexperiment_stages: {group: {}}\n")   # as written before version 2
     counts = select_experiment("fig2", params_path=params, root=ROOT)
@@ -53,7 +53,7 @@ def test_per_iteration_trajectory_schedules():
     assert q9.n_traj == (30, 50, 70, 90, 100) and [q9.n_traj_at(k) for k in range(5)] == [30, 50, 70, 90, 100]
     fig3 = loop_configs("fig3", load_experiment("fig3", root=ROOT))
     assert fig3["ur5-rinit-rtgt-sdp-n100-s0-h64-ta63"].n_traj == (100, 100, 100, 200, 200)
-    assert {(c.horizon, c.t_a) for c in fig3.values()} == {(32, 16), (32, 31), (64, 16), (64, 31), (64, 63)}
+    assert {(c.horizon, c.rollout.t_a) for c in fig3.values()} == {(32, 16), (32, 31), (64, 16), (64, 31), (64, 63)}
 
 
 def test_bad_experiment_files_are_one_clear_error(tmp_path):

@@ -59,7 +59,7 @@ def _batch(B=6, T_h=8, A=1, n_o=3, ndx=2, state=False):
 @pytest.mark.parametrize("state,path", [(False, "cond"), (True, "cond"), (False, "total"), (True, "total")])
 def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state, path):
     """The hand-written tangent and torch.func.jvp give the same loss and gradients (same RNG draws)."""
-    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_mode="jvp",
+    cfg = TrainConfig.of(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_mode="jvp",
                       sobolev_path=path)
     A = 2 if state else 1
     net = make_policy(cfg, A, 3, 2, 2)
@@ -101,7 +101,7 @@ def test_total_path_is_the_derivative_through_the_noisy_chunk():
     try:
         diffusion.sobolev_term = capture
         for path in ("total", "cond"):
-            cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8,
+            cfg = TrainConfig.of(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8,
                               sobolev_path=path)
             policy = make_policy(cfg, 1, 3, 2, 2).double()   # this path's config, the same weights
             if net is None:
@@ -151,7 +151,7 @@ def test_balance_scale_equalizes_a_zero_predictors_terms_and_ignores_state_units
 
 def test_inpainting_masks_history_rows():
     """Changing the target of the inpainted row changes neither loss term."""
-    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    cfg = TrainConfig.of(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
     net = make_policy(cfg, 1, 3, 2, 2)
     b = _batch()
     l1, _ = net.compute_loss(b, torch.Generator().manual_seed(0))
@@ -162,7 +162,7 @@ def test_inpainting_masks_history_rows():
 
 
 def test_scheduler_and_sampling():
-    cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    cfg = TrainConfig.of(method="dp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
     sch = make_scheduler(cfg)
     assert sch.config.beta_schedule == "squaredcos_cap_v2" and sch.config.prediction_type == "sample"
     assert sch.config.num_train_timesteps == 5 and sch.config.clip_sample
@@ -219,7 +219,7 @@ def test_forward_jvp_on_a_sub_batch():
     g2 = torch.autograd.grad((yd2 ** 2).sum() + y2.sum(), list(net.parameters()), allow_unused=True)
     for p, a, b in zip(net.parameters(), g1, g2):
         torch.testing.assert_close(torch.zeros_like(p) if a is None else a, torch.zeros_like(p) if b is None else b)
-    cfg = TrainConfig(method="sdp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_fraction=0.5)
+    cfg = TrainConfig.of(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_fraction=0.5)
     loss, parts = make_policy(cfg, 1, 3, 2, 2).compute_loss(_batch(), torch.Generator().manual_seed(0))
     assert torch.isfinite(loss) and parts["sobolev"] > 0
 
@@ -231,7 +231,7 @@ def test_k_rollout_chain_starts_from_pure_noise(k_rollout):
     diffusers' default "leading" spacing gave set_timesteps(2) -> [2, 0] and set_timesteps(1) -> [0]."""
     from sdp_cli.policy.diffusion import rollout_timesteps
 
-    cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    cfg = TrainConfig.of(method="dp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
     policy = make_policy(cfg, 1, 3, 2, 2).eval()
     calls = []
     policy.register_forward_pre_hook(lambda m, args: calls.append(int(args[1][0])))   # the diffusion index
@@ -241,8 +241,8 @@ def test_k_rollout_chain_starts_from_pure_noise(k_rollout):
     sch.step = lambda pred, t, tau, **kw: (steps.append((int(t), int(sch.previous_timestep(t)))), orig(pred, t, tau, **kw))[1]
     policy.sample(torch.zeros(2, 2), torch.zeros(2, 1, 3), torch.zeros(2, 1, 1), k_rollout,
                   generator=torch.Generator().manual_seed(0))
-    ts = rollout_timesteps(cfg.K, k_rollout)
-    assert calls == ts and ts[0] == cfg.K - 1 and len(ts) == k_rollout
+    ts = rollout_timesteps(cfg.policy.diffusion_steps, k_rollout)
+    assert calls == ts and ts[0] == cfg.policy.diffusion_steps - 1 and len(ts) == k_rollout
     assert [t for t, _ in steps] == ts
     assert [p for _, p in steps] == ts[1:] + [-1]        # each step goes to the next index, the last to clean
     assert k_rollout == 1 or ts[-1] == 0
@@ -250,13 +250,13 @@ def test_k_rollout_chain_starts_from_pure_noise(k_rollout):
 
 def test_full_chain_is_unchanged_by_explicit_timesteps():
     """k_rollout = K is bit-identical to the chain diffusers builds from set_timesteps(K)."""
-    cfg = TrainConfig(method="dp", T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
+    cfg = TrainConfig.of(method="dp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8)
     torch.manual_seed(3)
     net = make_policy(cfg, 1, 3, 2, 2).eval()
     xi, obs, a_hist = torch.randn(3, 2), torch.randn(3, 1, 3), torch.full((3, 1, 1), 0.2)
-    new = net.sample(xi, obs, a_hist, cfg.K, generator=torch.Generator().manual_seed(1))
+    new = net.sample(xi, obs, a_hist, cfg.policy.diffusion_steps, generator=torch.Generator().manual_seed(1))
     sch = make_scheduler(cfg)
-    sch.set_timesteps(cfg.K)
+    sch.set_timesteps(cfg.policy.diffusion_steps)
     g = torch.Generator().manual_seed(1)
     from diffusers.utils.torch_utils import randn_tensor
     with torch.no_grad():

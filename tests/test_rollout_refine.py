@@ -32,7 +32,7 @@ def trained(tmp_path_factory):
     data, _ = collect(CollectConfig(task="pendulum", n_traj=3, seed=0), root / "data.npz", workers=1)
     out = {"data": data}
     for method in ("sdp", "pddp"):
-        cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **TINY, "method": method, "epochs": 3, "T_h": 8})
+        cfg = TrainConfig.of(**{**TINY, "method": method, "epochs": 3, "horizon": 8})
         train(data, root / method, cfg, device="cpu", progress=False, log=lambda s: None)
         out[method] = root / method
     return out

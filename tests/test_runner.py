@@ -74,7 +74,7 @@ def test_runs_of_an_experiment_are_loop_configs(root):
     spec = load_experiment("tiny", root)
     cfgs = loop_configs("tiny", spec)
     assert list(cfgs) == RUNS
-    assert cfgs[RUNS[1]].seed == 1 and cfgs[RUNS[1]].collect_seed(0) == 1000 and cfgs[RUNS[0]].save_at == (1,)
+    assert cfgs[RUNS[1]].seed == 1 and cfgs[RUNS[1]].collect_seed(0) == 1000 and cfgs[RUNS[0]].save_at == [1]
     assert len(loop_configs("tiny", spec)) == 2
 
 
@@ -186,7 +186,8 @@ def test_status_reports_each_run_from_its_folder(root, sequential, tmp_path, mon
     (out / RUNS[0] / "summary.csv").unlink()                        # interrupted before the summary
     assert run_status("tiny", out, root=root).set_index("run").loc[RUNS[0], "state"] == "in progress"
     cfg = json.loads((out / RUNS[0] / "loop_config.json").read_text())
-    (out / RUNS[0] / "loop_config.json").write_text(json.dumps({**cfg, "epochs": 99}))
+    cfg["train"]["data"]["epochs"] = 99
+    (out / RUNS[0] / "loop_config.json").write_text(json.dumps(cfg))
     assert run_status("tiny", out, root=root).set_index("run").loc[RUNS[0], "state"] == "other settings"
     monkeypatch.chdir(root)
     r = CliRunner().invoke(app, ["pipeline", "tiny", "--status", "--out", str(out)])

@@ -28,7 +28,7 @@ def test_collect_train_rollout_refine(tmp_path, task, method):
         ["collect", "--task", task, "--n-traj", "2", "--seed", "0", "--out", str(data), "--workers", "1"],
         ["train", "--data", str(data), "--method", method, "--epochs", "2", "--horizon", "32",
          "--batch-size", "16", "--device", "cpu", "--no-progress", "--out", str(pol)]
-        + (["--alpha-sobolev", "0.001"] if task.startswith("quadrotor") else []),
+        + (["--sobolev-alpha", "0.001"] if task.startswith("quadrotor") else []),
         ["rollout", "--policy", str(pol), "--task", task, "--n", "2", "--t-a", "16", "--out", str(ro)],
         ["refine", "--rollouts", str(ro), "--out", str(rf), "--workers", "1"],
         ["evaluate", "--rollouts", str(ro), "--refined", str(rf), "--out", str(tmp_path / "eval" / "eval.csv")],

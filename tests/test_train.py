@@ -19,12 +19,12 @@ from sdp_cli.train import train
 from synthetic_dataset import write_dataset
 
 T = 30
-TINY = dict(T_h=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=32, mlp_hidden=[32, 32],
+TINY = dict(horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=32, mlp_hidden=[32, 32],
             checkpoint_every_s=1e9)
 
 
 def cfg(method, **kw):
-    return TrainConfig(method=method, **{**TINY, **kw})
+    return TrainConfig.of(method=method, **{**TINY, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +118,48 @@ def test_resume_after_kill_is_bit_identical(data, tmp_path):
     assert load_checkpoint(tmp_path / "run" / "epoch_3.pt")["epoch"] == 3
 
 
+def _as_format_version_1(path):
+    """Rewrite a checkpoint the way sdp wrote it before the config sections: one flat config with the older
+    names (T_h, T_o, K, alpha_sobolev, n_proj), format_version 1."""
+    raw = torch.load(path, weights_only=True)
+    flat = {}
+    for k, v in raw["config"].items():
+        flat.update(v if isinstance(v, dict) else {k: v})
+    for old, new in (("horizon", "T_h"), ("n_obs_steps", "T_o"), ("diffusion_steps", "K")):
+        flat[new] = flat.pop(old)
+    sob = raw["config"]["sobolev"]
+    for name in ("alpha", "balance", "path", "n_proj", "mode", "fraction", "cap"):
+        flat.pop(name)
+    flat.update({"alpha_sobolev": sob["alpha"], "sobolev_balance": sob["balance"], "sobolev_path": sob["path"],
+                 "n_proj": sob["n_proj"], "sobolev_mode": sob["mode"], "sobolev_fraction": sob["fraction"],
+                 "sobolev_cap": sob["cap"]})
+    torch.save({**raw, "config": flat, "format_version": 1}, path)
+
+
+def test_a_format_version_1_checkpoint_loads_and_resumes_bit_for_bit(data, tmp_path):
+    """Runs in progress when the config got its sections resume: the version-1 checkpoint is migrated on reading
+    and the resumed run equals an uninterrupted one."""
+    c = cfg("sdp", epochs=4, checkpoint_every_s=0.0)
+    ref = train(data["ok"], tmp_path / "ref", c, device="cpu", progress=False, log=quiet)
+
+    def kill(step):
+        if step == 2:
+            raise Killed
+    with pytest.raises(Killed):
+        train(data["ok"], tmp_path / "run", c, device="cpu", progress=False, log=quiet, on_step=kill)
+    _as_format_version_1(tmp_path / "run" / "checkpoint.pt")
+    old = load_checkpoint(tmp_path / "run")
+    assert old["format_version"] == 2   # migrated when read (alpha: the task's default, resolved by train)
+    assert TrainConfig.from_dict(old["config"]) == c.with_options(sobolev_alpha=1.0)
+    assert load_policy(tmp_path / "run").T_h == 8
+    got = train(data["ok"], tmp_path / "run", c, device="cpu", resume=True, progress=False, log=quiet)
+    a, b = load_checkpoint(ref), load_checkpoint(got)
+    for k in a["model"]:
+        torch.testing.assert_close(a["model"][k], b["model"][k], atol=0, rtol=0)
+    assert [r["loss"] for r in rows(tmp_path / "run")] == [r["loss"] for r in rows(tmp_path / "ref")]
+    assert torch.load(got, weights_only=True)["format_version"] == 2
+
+
 def test_init_keeps_weights_and_widens_the_normalizer(data, tmp_path):
     first = train(data["ok"], tmp_path / "first", cfg("pddp_s", epochs=2), device="cpu", progress=False, log=quiet)
     # a second dataset with 3x larger torques: --init must widen the normalizer to cover it
@@ -132,7 +174,7 @@ def test_init_keeps_weights_and_widens_the_normalizer(data, tmp_path):
     for kind in ("action", "obs", "xi"):                           # the union of both ranges
         assert torch.all(lo(b, kind) <= lo(a, kind) + 1e-6) and torch.all(hi(b, kind) >= hi(a, kind) - 1e-6)
     assert float(lo(b, "action").min()) <= U.min() + 1e-4 and float(hi(b, "action").max()) >= U.max() - 1e-4
-    assert b["config"]["mlp_hidden"] == [32, 32]    # architecture of the init checkpoint wins
+    assert b["config"]["policy"]["mlp_hidden"] == [32, 32]    # architecture of the init checkpoint wins
     # recorded relative to the checkpoint folder
     assert (tmp_path / "second" / b["init"]).resolve() == Path(first).resolve()
 
@@ -185,7 +227,7 @@ def test_sobolev_cap_only_lowers_the_sobolev_term(data, tmp_path):
     train(data["double"], tmp_path / "plain", cfg("sdp", epochs=1), device="cpu", progress=False, log=quiet)
     path = train(data["double"], tmp_path / "cap", cfg("sdp", epochs=1, sobolev_cap=0.5), device="cpu",
                  progress=False, log=quiet)
-    assert load_checkpoint(path)["config"]["sobolev_cap"] == 0.5
+    assert load_checkpoint(path)["config"]["sobolev"]["cap"] == 0.5
     a, b = rows(tmp_path / "plain")[0], rows(tmp_path / "cap")[0]
     assert float(b["dp"]) == pytest.approx(float(a["dp"]), rel=1e-6)
     assert 0 < float(b["sobolev"]) < float(a["sobolev"])
@@ -223,7 +265,7 @@ def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypat
     c = cfg(method, epochs=2, batch_size=16)
     path = train(data["ok"], tmp_path / "r", c, device="cpu", progress=False, log=quiet)
     ck = load_checkpoint(path)
-    E = int(np.ceil(3 * (T - c.T_h) / c.T_h)) if method == "sdp" else 3 * T
+    E = int(np.ceil(3 * (T - c.policy.horizon) / c.policy.horizon)) if method == "sdp" else 3 * T
     spe = int(np.ceil(E / 16))
     assert ck["steps_per_epoch"] == spe and ck["total_steps"] == 2 * spe == len(seen)
     sizes = [len(b) for b in seen[:spe]]

@@ -1,7 +1,7 @@
 """Policy checkpoints: one ``torch.save`` file, written atomically.
 
 Content (a dict of plain types and tensors, loadable with ``weights_only=True``):
-``format``, ``format_version``, ``method``, ``config`` (full :class:`TrainConfig`),
+``format``, ``format_version``, ``method``, ``config`` (full :class:`TrainConfig`, nested by section),
 ``dims`` (n_action, n_obs, n_xi, ndx), ``action``, ``task``, ``task_options``, ``task_params``,
 ``dataset`` (path, sha256 fingerprint, n_traj, T), ``provenance`` (versions, git revision, CPU model,
 torch thread count, CUDA device), ``device``,
@@ -9,6 +9,10 @@ torch thread count, CUDA device), ``device``,
 ``ema_model`` (same keys, EMA weights) and ``train_state`` (optimizer, LR schedule, EMA
 internals, RNG state) for ``--resume``. No clock readings (same seed, same bytes): the
 training wall time is in the run folder's timing sidecar (see :mod:`sdp_cli.train`).
+
+Format versions: 2 stores ``config`` as :meth:`TrainConfig.to_dict` (sections ``policy``, ``data``, ``optim``,
+``sobolev``); 1 stored one flat dict with older names (``T_h``, ``K``, ``alpha_sobolev``, ...).
+:func:`load_checkpoint` migrates version 1 on reading (:func:`migrate`), so runs started before resume.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
 
 FORMAT = "sdp-policy"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
@@ -76,6 +80,13 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         raise SdpError(f"{p} is not an sdp policy checkpoint")
     if ck.get("format_version", 0) > FORMAT_VERSION:
         raise SdpError(f"{p} has format_version {ck['format_version']}, newer than this sdp; upgrade sdp")
+    return migrate(ck)
+
+
+def migrate(ck: dict) -> dict:
+    """A checkpoint of an older format version as the current version reads it (in memory; the file stays)."""
+    if ck.get("format_version", 1) < 2:
+        ck = {**ck, "config": TrainConfig.from_dict(ck["config"]).to_dict(), "format_version": FORMAT_VERSION}
     return ck
 
 

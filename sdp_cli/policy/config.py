@@ -1,8 +1,31 @@
-"""Configuration of a policy and of its training run (stored in full in every checkpoint)."""
+"""Configuration of a policy and of its training run: typed sections, stored in full in every checkpoint.
+
+::
+
+    TrainConfig
+      policy:  PolicyConfig   method and architecture: what rebuilds the network
+      data:    DataConfig     epochs, batch size
+      optim:   OptimConfig    AdamW, LR warm-up, gradient clipping, EMA
+      sobolev: SobolevConfig  the first-order term (eq. 4 / 6)
+      seed, save_at, checkpoint_every_s
+
+Every field is a training *option* with one name (:func:`options`): the field's name, or ``sobolev_<field>``
+in the ``sobolev`` section (``sobolev.alpha`` is ``sobolev_alpha``). That name is the flag of ``sdp train``
+and ``sdp loop`` (``--horizon``, ``--sobolev-alpha``; both commands get their training options from here,
+:func:`sdp_cli.cli_options.with_train_options`), the key of an experiment group's ``train:`` mapping (its
+type checked against the field's) and so the DVC parameter (``groups.G.train.sobolev_alpha``). A new option
+is one field here (with its ``help``) plus the code that reads it. The paper's symbols: ``horizon`` is T_h,
+``n_obs_steps`` T_o, ``diffusion_steps`` K, ``sobolev_alpha`` alpha_Sobolev.
+
+Checkpoints and loop folders written before the sections existed store one flat dict with other names
+(``T_h``, ``K``, ``alpha_sobolev``, ...): :func:`TrainConfig.from_dict` migrates them (:data:`RENAMED`).
+"""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+import math
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from typing import Any, get_type_hints
 
 from sdp_cli.errors import SdpError
 
@@ -10,104 +33,106 @@ SOBOLEV_MODES = ("jvp", "vjp")
 SOBOLEV_PATHS = ("cond", "total")
 
 
+def opt(default=MISSING, help: str = "", factory=MISSING):
+    """A config field that is a training option (its ``help`` is the flag's)."""
+    if factory is not MISSING:
+        return field(default_factory=factory, metadata={"help": help})
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass
+class PolicyConfig:
+    """The method and its architecture (everything :func:`~sdp_cli.policy.registry.make_policy` needs)."""
+
+    method: str = opt("sdp", "Method (a registered policy family).")
+    action: str | None = opt(None, "Action variable u, x, q or v (default: the task's).")
+    horizon: int = opt(32, "Chunk length T_h (diffusion methods).")
+    n_obs_steps: int = opt(1, "Observed steps T_o (diffusion methods).")
+    diffusion_steps: int = opt(5, "DDPM steps K (training; rollouts may use fewer).")
+    down_dims: list[int] = opt(help="U-Net channels per level, comma-separated.", factory=lambda: [24, 24, 32, 32])
+    kernel_size: int = opt(5, "U-Net convolution kernel size.")
+    n_groups: int = opt(8, "GroupNorm groups of the U-Net.")
+    step_embed_dim: int = opt(64, "Diffusion-step embedding size.")
+    clip_sample: bool = opt(True, "Clip denoised chunks to [-1, 1] (normalized units).")
+    mlp_hidden: list[int] = opt(help="Hidden layer sizes of the MLP baselines, comma-separated.",
+                                factory=lambda: [256, 256, 256])
+
+
+@dataclass
+class DataConfig:
+    """How much of the dataset a run sees (Sec. IV's epochs; :mod:`sdp_cli.data.sampling`)."""
+
+    epochs: int = opt(1000, "Epochs (per iteration of `sdp loop`): |D|(T-T_h)/T_h chunks (diffusion) or |D|T "
+                                   "pairs (MLP) each.")
+    batch_size: int = opt(256, "Batch size B.")
+
+
+@dataclass
+class OptimConfig:
+    """AdamW, cosine learning rate with linear warm-up, clipping and EMA (diffusion policy's defaults)."""
+
+    lr: float = opt(1e-3, "Peak AdamW learning rate (cosine schedule with warm-up).")
+    weight_decay: float = opt(1e-6, "AdamW weight decay.")
+    betas: list[float] = opt(help="AdamW betas, comma-separated.", factory=lambda: [0.95, 0.999])
+    warmup_steps: int | None = opt(None, "Linear LR warm-up steps (default: min(500, total steps / 10)).")
+    grad_clip: float = opt(1.0, "Gradient-norm clip.")
+    ema_power: float = opt(0.75, "EMA warm-up power.")
+    ema_max_decay: float = opt(0.9999, "EMA maximum decay.")
+
+
+@dataclass
+class SobolevConfig:
+    """The Sobolev term (Sec. III): its weight, balance and how the Jacobian is matched."""
+
+    alpha: float | None = opt(None, "Weight alpha_Sobolev of the Sobolev term (default: the task's, the paper's "
+                                    "values: 1, quadrotor 1e-3).")
+    balance: bool = opt(True, "Scale the Sobolev term so that alpha 1 weighs it equally with the regression term "
+                              "on the dataset (docs/training.md).")
+    path: str = opt("cond", "sdp: cond = differentiate through (o_hist, a_hist) only; total = also through the "
+                            "noisy chunk tau_k.")
+    n_proj: int = opt(1, "Random projections per sample.")
+    mode: str = opt("jvp", "jvp: project on the state side (forward mode); vjp: eq. (6), project on the output side.")
+    fraction: float = opt(1.0, "jvp mode: share of each batch that gets the Sobolev term (1 = all; 0.5 costs "
+                               "~1.5x a DP step instead of ~1.9x).")
+    cap: float | None = opt(None, "sdp: down-weight the Sobolev error of chunks whose target-Jacobian norm "
+                                  "exceeds this quantile of the dataset's (e.g. 0.9); off by default.")
+
+    @property
+    def weight(self) -> float:
+        """alpha as the losses use it (None, the task's default, is resolved by ``train``; 1 outside it)."""
+        return 1.0 if self.alpha is None else float(self.alpha)
+
+
+SECTIONS = {"policy": PolicyConfig, "data": DataConfig, "optim": OptimConfig, "sobolev": SobolevConfig}
+PREFIXED = ("sobolev",)   # sections whose option names carry the section's name
+
+
 @dataclass
 class TrainConfig:
-    """Everything that defines a training run (defaults follow the paper / diffusion policy)."""
+    """Everything that defines a training run (see the module docstring)."""
 
-    method: str = "sdp"
-    epochs: int = 1000
-    seed: int = 0
-    batch_size: int = 256
-    # diffusion model
-    T_h: int = 32
-    T_o: int = 1
-    K: int = 5                       # diffusion steps (train); K_rollout <= K at inference
-    down_dims: list = field(default_factory=lambda: [24, 24, 32, 32])
-    kernel_size: int = 5
-    n_groups: int = 8
-    step_embed_dim: int = 64
-    clip_sample: bool = True
-    action: str | None = None        # None: the task's action variable
-    # MLP baselines
-    mlp_hidden: list = field(default_factory=lambda: [256, 256, 256])
-    # Sobolev term
-    alpha_sobolev: float | None = None  # None: the task's default (paper: 1, quadrotor 1e-3)
-    sobolev_balance: bool = True      # scale the Sobolev term so that alpha = 1 weighs both terms
-                                      # equally on the dataset (losses.sobolev.balance_scale)
-    sobolev_path: str = "cond"        # "cond": d/dx through (o_hist, a_hist) only; "total": also
-                                      # through the noisy chunk tau_k (sqrt(alpha_bar_k) J)
-    n_proj: int = 1
-    sobolev_mode: str = "jvp"        # "jvp": projection on the x side (forward mode); "vjp": eq. (6)
-    sobolev_fraction: float = 1.0    # jvp mode: share of each batch that gets the Sobolev term
-    sobolev_cap: float | None = None  # quantile of the chunk-Jacobian norms above which the Sobolev
-                                      # error is down-weighted (losses.sobolev.capped_weights); None: off
-    # optimization (diffusion policy defaults)
-    lr: float = 1e-3
-    weight_decay: float = 1e-6
-    betas: tuple = (0.95, 0.999)
-    warmup_steps: int | None = None  # None: min(500, total_steps // 10)
-    grad_clip: float = 1.0
-    ema_power: float = 0.75
-    ema_max_decay: float = 0.9999
-    # bookkeeping
-    save_at: list = field(default_factory=list)   # epochs at which to keep a checkpoint
-    checkpoint_every_s: float = 60.0
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    sobolev: SobolevConfig = field(default_factory=SobolevConfig)
+    seed: int = opt(0, "Seed of initialization, batches, noise and projections (`sdp loop`: also of collection, "
+                        "1000 * seed + k).")
+    save_at: list[int] = opt(help="Epochs at which to keep a checkpoint too, comma-separated, e.g. 1000 (`sdp loop` "
+                                  "evaluates them too: Fig. 1).",
+                             factory=list)
+    checkpoint_every_s: float = opt(60.0, "Seconds between checkpoints of the run (and at the end, on Ctrl-C).")
 
     def __post_init__(self):
-        from sdp_cli.policy.registry import get_method
-
-        get_method(self.method)   # a registered method (sdp_cli.policy.registry), else one clear error
-        from sdp_cli.seeds import check_seed
-
-        check_seed(self.seed)
-        if self.sobolev_mode not in SOBOLEV_MODES:
-            raise SdpError(f"sobolev mode must be one of {', '.join(SOBOLEV_MODES)}; got {self.sobolev_mode!r}")
-        for name in ("epochs", "batch_size", "K", "n_proj", "T_h", "T_o"):
-            if getattr(self, name) <= 0:
-                raise SdpError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not 0 <= self.checkpoint_every_s < float("inf"):
-            raise SdpError(f"checkpoint_every_s must be >= 0, got {self.checkpoint_every_s}")
-        for name in ("lr", "grad_clip", "ema_max_decay"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and v > 0 and v == v and v != float("inf")):
-                raise SdpError(f"{name} must be a finite number > 0, got {v}")
-        if not 0 <= self.weight_decay < float("inf"):
-            raise SdpError(f"weight_decay must be >= 0, got {self.weight_decay}")
-        if not self.ema_max_decay <= 1:
-            raise SdpError(f"ema_max_decay must be in (0, 1], got {self.ema_max_decay}")
-        if not (len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas)):
-            raise SdpError(f"betas must be two numbers in [0, 1), got {list(self.betas)}")
-        if self.warmup_steps is not None and self.warmup_steps < 0:
-            raise SdpError(f"warmup_steps must be >= 0, got {self.warmup_steps}")
-        if any(not 0 < int(e) < self.epochs for e in self.save_at):
-            raise SdpError(f"save_at epochs must be in (0, epochs = {self.epochs}), got {list(self.save_at)}")
-        if not 0 < self.sobolev_fraction <= 1:
-            raise SdpError(f"sobolev_fraction must be in (0, 1], got {self.sobolev_fraction}")
-        if self.sobolev_fraction < 1 and self.sobolev_mode != "jvp":
-            raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
-        if self.sobolev_path not in SOBOLEV_PATHS:
-            raise SdpError(f"sobolev path must be one of {', '.join(SOBOLEV_PATHS)}; got {self.sobolev_path!r}")
-        if self.sobolev_path == "total" and not (self.is_diffusion and self.sobolev):
-            raise SdpError(f"sobolev_path 'total' applies to Sobolev diffusion methods (sdp), not {self.method!r}")
-        if self.alpha_sobolev is not None and not 0 <= self.alpha_sobolev < float("inf"):
-            raise SdpError(f"alpha_sobolev must be >= 0, got {self.alpha_sobolev}")
-        if self.sobolev_cap is not None:
-            if not 0 < self.sobolev_cap <= 1:
-                raise SdpError(f"sobolev_cap is a quantile in (0, 1], got {self.sobolev_cap}")
-            if not (self.is_diffusion and self.sobolev):
-                raise SdpError(f"sobolev_cap applies to Sobolev diffusion methods (sdp), not {self.method!r}")
-        if self.is_diffusion:
-            levels = len(self.down_dims)
-            if self.T_h % (2 ** (levels - 1)):
-                raise SdpError(f"T_h = {self.T_h} must be divisible by 2^(len(down_dims) - 1) = "
-                               f"{2 ** (levels - 1)} for the U-Net")
-            bad = [d for d in self.down_dims if d % self.n_groups]
-            if bad:
-                raise SdpError(f"down_dims {bad} not divisible by n_groups = {self.n_groups}")
-        self.down_dims = [int(d) for d in self.down_dims]
-        self.mlp_hidden = [int(d) for d in self.mlp_hidden]
-        self.betas = tuple(float(b) for b in self.betas)
+        self.policy.down_dims = [int(d) for d in self.policy.down_dims]
+        self.policy.mlp_hidden = [int(d) for d in self.policy.mlp_hidden]
+        self.optim.betas = [float(b) for b in self.optim.betas]
         self.save_at = sorted(int(e) for e in self.save_at)
+        check(self)
+
+    # ------------------------------------------------------------------ what the method is
+    @property
+    def method(self) -> str:
+        return self.policy.method
 
     @property
     def policy_class(self):
@@ -124,22 +149,164 @@ class TrainConfig:
         return get_method(self.method).chunked
 
     @property
-    def sobolev_weight(self) -> float:
-        """alpha_Sobolev as the losses use it (None, the task's default, is resolved by ``train``; 1 outside it)."""
-        return 1.0 if self.alpha_sobolev is None else float(self.alpha_sobolev)
-
-    @property
-    def sobolev(self) -> bool:
+    def uses_sobolev(self) -> bool:
+        """The method trains with the Sobolev term (needs the dataset's gains)."""
         from sdp_cli.policy.registry import get_method
 
         return get_method(self.method).sobolev
 
+    # ------------------------------------------------------------------ options and storage
+    @classmethod
+    def of(cls, **opts) -> "TrainConfig":
+        """The config of these options (flat names, :func:`options`); the others at their defaults."""
+        unknown = sorted(set(opts) - set(options()))
+        if unknown:
+            hint = "; ".join(f"{k} is now {RENAMED[k]}" for k in unknown if k in RENAMED)
+            raise SdpError(f"unknown training option(s) {unknown}" + (f" ({hint})" if hint else ""))
+        parts: dict[str, dict] = {s: {} for s in SECTIONS}
+        top = {}
+        for name, value in opts.items():
+            section, fname = options()[name]
+            (parts[section] if section else top)[fname] = value
+        return cls(**{s: SECTIONS[s](**parts[s]) for s in SECTIONS}, **top)
+
+    def options(self) -> dict[str, Any]:
+        """``{option name: value}`` of every option (the inverse of :meth:`of`)."""
+        return {name: getattr(getattr(self, s) if s else self, f) for name, (s, f) in options().items()}
+
+    def with_options(self, **opts) -> "TrainConfig":
+        return TrainConfig.of(**{**self.options(), **opts})
+
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["betas"] = list(self.betas)
-        return d
+        return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        """From :meth:`to_dict`'s nested dict, or the flat dict of checkpoints before the sections (migrated)."""
+        return cls.of(**flat_options(d))
+
+    def architecture(self) -> dict:
+        """The policy section as options (what an ``--init`` checkpoint imposes)."""
+        return {name: v for name, v in self.options().items() if options()[name][0] == "policy"}
+
+
+#: flat names of checkpoints and loop folders before the sections (format_version 1) -> option names
+RENAMED = {"T_h": "horizon", "T_o": "n_obs_steps", "K": "diffusion_steps", "alpha_sobolev": "sobolev_alpha",
+           "n_proj": "sobolev_n_proj"}
+
+
+def flat_options(d: dict) -> dict:
+    """``{option: value}`` of a stored config: nested (:meth:`TrainConfig.to_dict`) or flat (older
+    checkpoints, whose names :data:`RENAMED` maps); keys no option has are dropped."""
+    if any(isinstance(d.get(s), dict) for s in SECTIONS):
+        out = {}
+        for name, (s, f) in options().items():
+            src = d.get(s) if s else d
+            if isinstance(src, dict) and f in src:
+                out[name] = src[f]
+        return out
+    known = options()
+    renamed = {RENAMED.get(k, k): v for k, v in d.items()}
+    return {k: v for k, v in renamed.items() if k in known}
+
+
+def options() -> dict[str, tuple[str | None, str]]:
+    """``{option name: (section or None, field)}`` of every training option, in declaration order."""
+    global _OPTIONS
+    if _OPTIONS is None:
+        out = {}
+        for f in fields(TrainConfig):
+            if f.name in SECTIONS:
+                for sf in fields(SECTIONS[f.name]):
+                    out[f"{f.name}_{sf.name}" if f.name in PREFIXED else sf.name] = (f.name, sf.name)
+            else:
+                out[f.name] = (None, f.name)
+        _OPTIONS = out
+    return _OPTIONS
+
+
+_OPTIONS = None
+
+
+def option_field(name: str):
+    """``(type, default, help)`` of an option: its annotation (``int | None``, ``list[int]``, ...), its default
+    value and its help text."""
+    section, fname = options()[name]
+    cls = SECTIONS[section] if section else TrainConfig
+    f = {x.name: x for x in fields(cls)}[fname]
+    default = f.default_factory() if f.default_factory is not MISSING else f.default
+    return get_type_hints(cls)[fname], default, f.metadata.get("help", "")
+
+
+def _positive(cfg: TrainConfig, *names: str) -> None:
+    for name in names:
+        s, f = options()[name]
+        v = getattr(getattr(cfg, s) if s else cfg, f)
+        if v <= 0:
+            raise SdpError(f"{name} must be > 0, got {v}")
+
+
+def _finite_positive(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 and math.isfinite(v)
+
+
+def check(cfg: TrainConfig) -> None:
+    """Every rule a config obeys (one :class:`SdpError` naming the option)."""
+    from sdp_cli.policy.registry import get_method
+    from sdp_cli.seeds import check_seed
+
+    p, o, s = cfg.policy, cfg.optim, cfg.sobolev
+    get_method(p.method)   # a registered method (sdp_cli.policy.registry), else one clear error
+    check_seed(cfg.seed)
+    if s.mode not in SOBOLEV_MODES:
+        raise SdpError(f"sobolev_mode must be one of {', '.join(SOBOLEV_MODES)}; got {s.mode!r}")
+    _positive(cfg, "epochs", "batch_size", "diffusion_steps", "sobolev_n_proj", "horizon", "n_obs_steps")
+    if not 0 <= cfg.checkpoint_every_s < float("inf"):
+        raise SdpError(f"checkpoint_every_s must be >= 0, got {cfg.checkpoint_every_s}")
+    for name in ("lr", "grad_clip", "ema_max_decay"):
+        if not _finite_positive(getattr(o, name)):
+            raise SdpError(f"{name} must be a finite number > 0, got {getattr(o, name)}")
+    if not 0 <= o.weight_decay < float("inf"):
+        raise SdpError(f"weight_decay must be >= 0, got {o.weight_decay}")
+    if not o.ema_max_decay <= 1:
+        raise SdpError(f"ema_max_decay must be in (0, 1], got {o.ema_max_decay}")
+    if not (len(o.betas) == 2 and all(0 <= b < 1 for b in o.betas)):
+        raise SdpError(f"betas must be two numbers in [0, 1), got {list(o.betas)}")
+    if o.warmup_steps is not None and o.warmup_steps < 0:
+        raise SdpError(f"warmup_steps must be >= 0, got {o.warmup_steps}")
+    if any(not 0 < int(e) < cfg.data.epochs for e in cfg.save_at):
+        raise SdpError(f"save_at epochs must be in (0, epochs = {cfg.data.epochs}), got {list(cfg.save_at)}")
+    if not 0 < s.fraction <= 1:
+        raise SdpError(f"sobolev_fraction must be in (0, 1], got {s.fraction}")
+    if s.fraction < 1 and s.mode != "jvp":
+        raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
+    if s.path not in SOBOLEV_PATHS:
+        raise SdpError(f"sobolev_path must be one of {', '.join(SOBOLEV_PATHS)}; got {s.path!r}")
+    sobolev_diffusion = cfg.is_diffusion and cfg.uses_sobolev
+    if s.path == "total" and not sobolev_diffusion:
+        raise SdpError(f"sobolev_path 'total' applies to Sobolev diffusion methods (sdp), not {p.method!r}")
+    if s.alpha is not None and not 0 <= s.alpha < float("inf"):
+        raise SdpError(f"sobolev_alpha must be >= 0, got {s.alpha}")
+    if s.cap is not None:
+        if not 0 < s.cap <= 1:
+            raise SdpError(f"sobolev_cap is a quantile in (0, 1], got {s.cap}")
+        if not sobolev_diffusion:
+            raise SdpError(f"sobolev_cap applies to Sobolev diffusion methods (sdp), not {p.method!r}")
+    for name in ("down_dims", "mlp_hidden"):
+        if not getattr(p, name) or min(getattr(p, name)) <= 0:
+            raise SdpError(f"{name} must be positive integers, got {getattr(p, name)}")
+    if cfg.is_diffusion:
+        levels = len(p.down_dims)
+        if p.horizon % (2 ** (levels - 1)):
+            raise SdpError(f"horizon T_h = {p.horizon} must be divisible by 2^(len(down_dims) - 1) = "
+                           f"{2 ** (levels - 1)} for the U-Net")
+        bad = [d for d in p.down_dims if d % p.n_groups]
+        if bad:
+            raise SdpError(f"down_dims {bad} not divisible by n_groups = {p.n_groups}")
+
+
+def resolved_alpha(cfg: TrainConfig, task) -> TrainConfig:
+    """``cfg`` with ``sobolev.alpha`` None replaced by the task's default (:attr:`Task.sobolev_alpha`)."""
+    if cfg.sobolev.alpha is not None:
+        return cfg
+    return replace(cfg, sobolev=replace(cfg.sobolev, alpha=float(task.sobolev_alpha)))

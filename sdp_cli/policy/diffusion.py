@@ -37,8 +37,8 @@ from sdp_cli.policy.unet import ConditionalUnet1D
 
 
 def make_scheduler(cfg: TrainConfig) -> DDPMScheduler:
-    return DDPMScheduler(num_train_timesteps=cfg.K, beta_schedule="squaredcos_cap_v2",
-                         clip_sample=cfg.clip_sample, prediction_type="sample")
+    return DDPMScheduler(num_train_timesteps=cfg.policy.diffusion_steps, beta_schedule="squaredcos_cap_v2",
+                         clip_sample=cfg.policy.clip_sample, prediction_type="sample")
 
 
 def rollout_timesteps(K: int, k_rollout: int) -> list[int]:
@@ -72,8 +72,9 @@ class DiffusionUnetPolicy(Policy):
         super().__init__(config, dims)
         d = self.dims
         self.normalizer = Normalizer(d["n_action"], d["n_obs"], d["n_xi"], d["ndx"])
-        self.unet = ConditionalUnet1D(d["n_action"], d["n_xi"] + config.T_o * d["n_obs"], config.down_dims,
-                                      config.kernel_size, config.n_groups, config.step_embed_dim)
+        p = config.policy
+        self.unet = ConditionalUnet1D(d["n_action"], d["n_xi"] + p.n_obs_steps * d["n_obs"], p.down_dims,
+                                      p.kernel_size, p.n_groups, p.step_embed_dim)
         self.noise_scheduler = make_scheduler(config)
 
     # ------------------------------------------------------------------ data
@@ -81,8 +82,9 @@ class DiffusionUnetPolicy(Policy):
     def make_dataset(cls, config, task, arrays, with_jacobians):
         from sdp_cli.data.chunks import ChunkDataset
 
-        action = config.action or task.action
-        return ChunkDataset(task, arrays, config.T_h, config.T_o, action, with_jacobians=with_jacobians), action
+        p = config.policy
+        action = p.action or task.action
+        return ChunkDataset(task, arrays, p.horizon, p.n_obs_steps, action, with_jacobians=with_jacobians), action
 
     @classmethod
     def dims_for(cls, config, task, action):
@@ -92,7 +94,7 @@ class DiffusionUnetPolicy(Policy):
                 "n_xi": task.n_xi, "ndx": task.ndx}
 
     def balance_terms(self, tensors):
-        return tensors["tau0"][:, self.config.T_o:], tensors["jac"][:, self.config.T_o:]
+        return tensors["tau0"][:, self.T_o:], tensors["jac"][:, self.T_o:]
 
     # ------------------------------------------------------------------ network
     def forward(self, tau_k, k, xi_n, obs_n):
@@ -110,20 +112,20 @@ class DiffusionUnetPolicy(Policy):
         ``batch``: ``tau0 (B, T_h, A)``, ``a_hist (B, T_o, A)``, ``obs (B, T_o, n_o)``,
         ``obs_jac (B, T_o, n_o, ndx)``, ``xi (B, n_xi)``; for Sobolev (``sdp``) also ``jac (B, T_h, A, ndx)``
         and, for state control, ``a_hist_jac (B, T_o, A, ndx)``. The Sobolev term is multiplied by
-        :attr:`sobolev_scale` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``alpha_sobolev``.
+        :attr:`sobolev_scale` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``sobolev_alpha``.
         ``sobolev_path == "total"`` also differentiates through the noisy rows of ``tau_k`` (tangent
         ``sqrt(alpha_bar_k) J`` on rows ``T_o:``); "cond" holds them fixed.
         """
-        cfg, scheduler = self.config, self.noise_scheduler
+        cfg, scheduler = self.config.sobolev, self.noise_scheduler
         tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
-        B, T_o = tau0.shape[0], cfg.T_o
+        B, T_o = tau0.shape[0], self.T_o
         dev = tau0.device
         gdev = generator.device if generator is not None else dev   # CPU generator: same draws on a GPU
         noise = torch.randn(tau0.shape, generator=generator, device=gdev).to(dev)
-        k = torch.randint(0, cfg.K, (B,), generator=generator, device=gdev).to(dev)
+        k = torch.randint(0, self.K, (B,), generator=generator, device=gdev).to(dev)
         tau_k = scheduler.add_noise(tau0, noise, k)
         rest = tau_k[:, T_o:]
-        if not cfg.sobolev:
+        if not self.config.uses_sobolev:
             x = torch.cat([a_hist, rest], dim=1)
             pred = self(x, k, xi, obs)[:, T_o:]
             dp = ((pred - tau0[:, T_o:]) ** 2).mean()
@@ -132,7 +134,7 @@ class DiffusionUnetPolicy(Policy):
         obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
         # "total": the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k) d tau_0 / dx
         rest_jac = None
-        if cfg.sobolev_path == "total":
+        if cfg.path == "total":
             sab = scheduler.alphas_cumprod.to(dev)[k].sqrt().to(tau0.dtype)
             rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
 
@@ -143,7 +145,7 @@ class DiffusionUnetPolicy(Policy):
             return self(torch.cat([a, r], dim=1), k, xi, o)[:, T_o:]
 
         # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
-        n_s = B if cfg.sobolev_mode == "vjp" else max(1, round(cfg.sobolev_fraction * B))
+        n_s = B if cfg.mode == "vjp" else max(1, round(cfg.fraction * B))
 
         def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
             o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
@@ -158,11 +160,11 @@ class DiffusionUnetPolicy(Policy):
             return y[:, T_o:], yd[:, T_o:]
 
         J = batch["jac"][:n_s, T_o:]
-        pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
+        pred, term = sobolev_term(cfg.mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
         dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-        w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (cfg.sobolev_cap)
+        w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (sobolev_cap)
         sob = self.sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
-        loss = dp + cfg.sobolev_weight * sob
+        loss = dp + cfg.weight * sob
         return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
 
     # ------------------------------------------------------------------ sampling
@@ -172,10 +174,10 @@ class DiffusionUnetPolicy(Policy):
         """Reverse DDPM (Algorithm 2 lines 3-7), normalized: ``xi_n (B, n_xi)``, ``obs_n (B, T_o, n_o)``,
         ``a_hist_n (B, T_o, A)`` -> ``(B, T_h, A)`` with the history inpainted. A list of generators (one
         per instance) makes batched and one-by-one sampling identical."""
-        cfg, scheduler = self.config, self.noise_scheduler
+        scheduler = self.noise_scheduler
         B, T_o, A = a_hist_n.shape
-        scheduler.set_timesteps(timesteps=rollout_timesteps(cfg.K, k_rollout or cfg.K), device=a_hist_n.device)
-        tau = randn_tensor((B, cfg.T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
+        scheduler.set_timesteps(timesteps=rollout_timesteps(self.K, k_rollout or self.K), device=a_hist_n.device)
+        tau = randn_tensor((B, self.T_h, A), generator=generator, device=a_hist_n.device, dtype=a_hist_n.dtype)
         for t in scheduler.timesteps:
             tau[:, :T_o] = a_hist_n
             kk = torch.full((B,), int(t), device=tau.device, dtype=torch.long)
@@ -187,15 +189,18 @@ class DiffusionUnetPolicy(Policy):
     # ------------------------------------------------------------------ rollout (physical units)
     @property
     def T_h(self) -> int:
-        return self.config.T_h
+        """The chunk length (``policy.horizon``)."""
+        return self.config.policy.horizon
 
     @property
     def T_o(self) -> int:
-        return self.config.T_o
+        """Observed steps (``policy.n_obs_steps``)."""
+        return self.config.policy.n_obs_steps
 
     @property
     def K(self) -> int:
-        return self.config.K
+        """Diffusion steps of training (``policy.diffusion_steps``)."""
+        return self.config.policy.diffusion_steps
 
     def a_hist(self, x_hist: np.ndarray, u_hist: np.ndarray) -> np.ndarray:
         """History actions: ``u_{t-1}`` for torque control, ``g(x_t)`` otherwise: (B, T_o, A)."""

@@ -41,7 +41,7 @@ class MLPPolicy(Policy):
 
     def build_network(self) -> None:
         layers, d = [], self.dims["n_obs"] + self.dims["n_xi"]
-        for h in self.config.mlp_hidden:
+        for h in self.config.policy.mlp_hidden:
             layers += [nn.Linear(d, h), nn.SiLU()]
             d = h
         layers.append(nn.Linear(d, self.dims["n_action"]))
@@ -66,10 +66,10 @@ class MLPPolicy(Policy):
     def compute_loss(self, batch: dict, generator: torch.Generator | None = None):
         """Eq. (4) (``pddp_s``) or plain regression (``pddp``): ``batch`` has ``obs, obs_jac, u, xi`` and ``jac``
         = K (normalized). The Sobolev term is multiplied by :attr:`sobolev_scale` and then by
-        ``alpha_sobolev``; the ``sobolev`` part reported is the scaled term."""
-        cfg = self.config
+        ``sobolev_alpha``; the ``sobolev`` part reported is the scaled term."""
+        cfg = self.config.sobolev
         obs, obs_jac, u, xi = batch["obs"], batch["obs_jac"], batch["u"], batch["xi"]
-        if not cfg.sobolev:
+        if not self.config.uses_sobolev:
             reg = ((self(obs, xi) - u) ** 2).mean()
             return reg, {"dp": reg.detach(), "sobolev": torch.zeros((), device=u.device)}
 
@@ -77,10 +77,10 @@ class MLPPolicy(Policy):
             return self(obs + torch.einsum("boi,bi->bo", obs_jac, delta), xi)
 
         J = batch["jac"]
-        pred, term = sobolev_term(cfg.sobolev_mode, f, J.shape[-1], J, cfg.n_proj, generator)
+        pred, term = sobolev_term(cfg.mode, f, J.shape[-1], J, cfg.n_proj, generator)
         reg = ((pred - u) ** 2).mean()
         sob = self.sobolev_scale * term.mean()
-        return reg + cfg.sobolev_weight * sob, {"dp": reg.detach(), "sobolev": sob.detach()}
+        return reg + cfg.weight * sob, {"dp": reg.detach(), "sobolev": sob.detach()}
 
     @torch.no_grad()
     def act(self, x, xi) -> np.ndarray:

@@ -61,7 +61,7 @@ class Task(PolicyConventions, ABC):
     #: action variable of the policy: "u" (torque), "x", "q" or "v"
     action: str = "u"
     #: default alpha_Sobolev of this task (paper Sec. IV: 1.0, except 1e-3 on the quadrotor)
-    alpha_sobolev: float = 1.0
+    sobolev_alpha: float = 1.0
     #: name of the compiled optimizer library; variants whose OCPs are the same casadi
     #: functions (they differ only in how xi is sampled) share one (default: ``name``)
     compile_family: str | None = None

@@ -138,7 +138,7 @@ class QuadrotorTask(StartGoalTask):
     """Hector quadrotor flying to a goal at the same height among vertical columns."""
 
     action = "x"
-    alpha_sobolev = 1e-3   # paper Sec. IV: "alpha_Sobolev = 1e-3 performs better" on the quadrotor
+    sobolev_alpha = 1e-3   # paper Sec. IV: "alpha_Sobolev = 1e-3 performs better" on the quadrotor
 
     def __init__(self, n_obstacles: int = 0, T: int = 180, dt: float = 0.01, name: str | None = None,
                  arrival: bool = True):
