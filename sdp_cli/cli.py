@@ -195,7 +195,7 @@ def plot_dataset_cmd(
     dpi: Annotated[int, typer.Option(help="Resolution of raster images.")] = 120,
 ) -> None:
     """Draw a dataset's end-effector / quadrotor paths in 3D with start, goal and obstacles."""
-    from sdp_cli.report.plot_dataset import plot_dataset
+    from sdp_cli.report.figures.plot_dataset import plot_dataset
 
     written, n = plot_dataset(path, out, max_traj=max_traj, dpi=dpi)
     typer.echo(f"wrote {written}: {n} trajectories")

@@ -19,11 +19,26 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
-from sdp_cli.report.claims import fig2_only_sdp, ratio_verdict, speedup
 from sdp_cli.report.ledger import ledger_rows, read_claims, write_ledger
+from sdp_cli.report.ledger.rules import RULES
+from sdp_cli.report.ledger.verdicts import ratio_verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
+
+
+def _bound_rules() -> dict:
+    """Each rule with its claim's params from the committed results/claims.yaml (over the shared rules)."""
+    claims, shared = read_claims(RESULTS / "claims.yaml")
+    out = {}
+    for c in claims:
+        params = {**shared, **(c.get("params") or {})}
+        out[c["rule"]] = (lambda fn, p: lambda res: fn(res, p))(RULES[c["rule"]], params)
+    return out
+
+
+R = _bound_rules()
+fig2_only_sdp, speedup = R["fig2_only_sdp"], R["speedup"]
 runner = CliRunner()
 
 
@@ -42,7 +57,7 @@ def test_committed_ledger_is_regenerated_from_the_committed_reports(tmp_path):
 
 
 def test_every_claim_has_a_row_and_a_verdict():
-    claims = read_claims(RESULTS / "claims.yaml")
+    claims, _ = read_claims(RESULTS / "claims.yaml")
     assert [c["id"] for c in claims] == list(range(1, 14))
     text = (RESULTS / "PAPER.md").read_text()
     for c in claims:
@@ -53,12 +68,12 @@ def test_every_claim_has_a_row_and_a_verdict():
 
 
 def test_ratio_rule():
-    assert ratio_verdict(10.0, 18.6) == "reproduced"      # 9.0 >= 17.6 / 2
-    assert ratio_verdict(9.0, 18.6) == "partly"
-    assert ratio_verdict(2.8, 18.6) == "partly"           # 1.8 >= 1.76
-    assert ratio_verdict(1.05, 18.6) == "not reproduced"
-    assert ratio_verdict(0.5, 2.0) == "not reproduced"
-    assert ratio_verdict(float("nan"), 2.0) == "not reproduced"
+    assert ratio_verdict(10.0, 18.6, 0.5, 0.1) == "reproduced"      # 9.0 >= 17.6 / 2
+    assert ratio_verdict(9.0, 18.6, 0.5, 0.1) == "partly"
+    assert ratio_verdict(2.8, 18.6, 0.5, 0.1) == "partly"           # 1.8 >= 1.76
+    assert ratio_verdict(1.05, 18.6, 0.5, 0.1) == "not reproduced"
+    assert ratio_verdict(0.5, 2.0, 0.5, 0.1) == "not reproduced"
+    assert ratio_verdict(float("nan"), 2.0, 0.5, 0.1) == "not reproduced"
 
 
 def _fig2_rows(dp_success: float, sdp_done: int = 5) -> pd.DataFrame:
@@ -97,24 +112,37 @@ def test_unfinished_runs_are_left_out_and_named():
     assert r.verdict == "partly"
 
 
-def test_runs_without_a_rule_and_bad_claims_files_fail_cleanly(tmp_path):
-    claims = [{"id": 99, "claim": "c", "paper": "p", "experiment": "fig9", "not_run": "est"}]
+def test_claims_name_their_rule_needs_and_params_and_bad_files_fail_cleanly(tmp_path):
+    """The claims file alone says what a claim needs, which rule judges it and with which numbers."""
+    claims = [{"id": 99, "claim": "c", "paper": "p", "needs": ["fig9"], "rule": "k_steps", "not_run": "est"}]
     assert ledger_rows({}, claims)[0]["verdict"] == "not run"
     assert ledger_rows({}, claims)[0]["detail"] == "est"
-    with pytest.raises(SdpError, match="no rule"):
-        ledger_rows({"fig9": pd.DataFrame()}, claims)
+    two = [{"id": 2, "claim": "c", "paper": "p", "needs": ["fig1"], "rule": "dp_needs_more"}]
+    shared = {"solved": 0.5, "within": 0.1, "keep": 0.5, "partly": 0.1}
     with pytest.raises(SdpError, match="claim 2: the reports lack"):         # a report without the columns
-        ledger_rows({"fig1": pd.DataFrame({"task": ["pendulum"]})}, [{"id": 2, "claim": "c", "paper": "p"}])
-    (tmp_path / "claims.yaml").write_text(yaml.safe_dump({"claims": [{"id": 1}]}))
-    r = runner.invoke(app, ["report", "--ledger", str(tmp_path / "PAPER.md")])
-    assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+        ledger_rows({"fig1": pd.DataFrame({"task": ["pendulum"]})}, two, shared)
+    d = _fig1_rows()
+    with pytest.raises(SdpError, match=r"claim 2: results/claims.yaml gives no 'within'"):   # a param missing
+        ledger_rows({"fig1": d}, two)
+    # the paper's number is the yaml's: another ratio, another verdict, same code
+    base = {"tasks": ["pendulum", "ur5-fixed", "quadrotor-0"], "ratio": 5.0, "lower_bound_min": 3}
+    d = d.query("task == 'pendulum'")
+    v = [ledger_rows({"fig1": d}, [{**two[0], "params": {**base, "ratio": r}}], shared)[0]["verdict"]
+         for r in (5.0, 200.0)]
+    assert v[0] != v[1] and v[1] == "not reproduced"
+    for bad in ({"claims": [{"id": 1}]},
+                {"claims": [{"id": 1, "claim": "c", "paper": "p", "needs": ["fig1"], "rule": "nope"}]},
+                {"claims": [{"id": 1, "claim": "c", "paper": "p", "needs": "fig1", "rule": "k_steps"}]}):
+        (tmp_path / "claims.yaml").write_text(yaml.safe_dump(bad))
+        r = runner.invoke(app, ["report", "--ledger", str(tmp_path / "PAPER.md")])
+        assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "PAPER.md").exists()
     r = runner.invoke(app, ["report"])
     assert r.exit_code == 1 and "nothing to do" in r.output
 
 
 def test_fig1_and_k_ablation_rules():
-    from sdp_cli.report.claims import k_steps, sdp_reaches_to
+    k_steps, sdp_reaches_to = R["k_steps"], R["sdp_reaches_to"]
 
     def fig1(never: str | None = None):
         rows = []
@@ -147,7 +175,7 @@ def test_fig1_and_k_ablation_rules():
 
 
 def test_quadrotor_rules_per_layout():
-    from sdp_cli.report.claims import quadrotor9_times, quadrotor_precision
+    quadrotor9_times, quadrotor_precision = R["quadrotor9_times"], R["quadrotor_precision"]
 
     def fig4(dp_violates: float, layouts=("quadrotor-0", "quadrotor-1", "quadrotor-3", "quadrotor-9")):
         rows = []
@@ -224,7 +252,7 @@ def _fig1_rows():
 
 
 def test_fig1_claims_on_synthetic_rows():
-    from sdp_cli.report.claims import dp_needs_more, mlp_unstable, pendulum_torque
+    dp_needs_more, mlp_unstable, pendulum_torque = R["dp_needs_more"], R["mlp_unstable"], R["pendulum_torque"]
 
     r = dp_needs_more({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "pendulum: SDP from n_traj 4, DP from n_traj 32 (8x)" in r.ours
@@ -273,7 +301,7 @@ def test_fig1_claims_on_synthetic_rows():
 
 
 def test_fig3_claim_per_horizon_and_action_length():
-    from sdp_cli.report.claims import ur5_long_actions
+    ur5_long_actions = R["ur5_long_actions"]
 
     rows = []
     for task in ("ur5-rinit", "ur5-rinit-rtgt"):
@@ -349,9 +377,12 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
                    "diverged": 0, "to_alone_cost_mean": 14.0, "rollout_time": 1.0, "run": run, "iteration": 0}
             write_evaluation([row], d / "eval.csv", [{"rollouts": None, "refined": None, "policy": None, "data": None}])
     (tmp_path / "results").mkdir()
-    (tmp_path / "results" / "claims.yaml").write_text(yaml.safe_dump({"claims": [
-        {"id": 12, "claim": "K = 5 diffusion steps suffice", "paper": "K = 5", "experiment": "ablation_k"},
-        {"id": 8, "claim": "UR5", "paper": "p", "experiment": "fig3", "not_run": "fig3: 92 h on 2 workers"}]}))
+    (tmp_path / "results" / "claims.yaml").write_text(yaml.safe_dump({
+        "rules": {"solved": 0.5, "within": 0.1, "keep": 0.5, "partly": 0.1}, "claims": [
+            {"id": 12, "claim": "K = 5 diffusion steps suffice", "paper": "K = 5", "needs": ["ablation_k"],
+             "rule": "k_steps", "params": {"k": 5, "reference_k": 10}},
+            {"id": 8, "claim": "UR5", "paper": "p", "needs": ["fig3"], "rule": "ur5_long_actions",
+             "not_run": "fig3: 92 h on 2 workers"}]}))
     r = runner.invoke(app, ["report", "--runs", "runs/ablation_k", "--out", "results/ablation_k",
                             "--experiment", "ablation_k", "--ledger", "results/PAPER.md"])
     assert r.exit_code == 0, r.output
@@ -364,14 +395,14 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     out = tmp_path / "results" / "ablation_k"
     assert set(pd.read_csv(out / "all_runs.csv").method) == {"sdp"}
     assert set(pd.read_csv(out / "fig1_pendulum.csv").method) == {"sdp-K2", "sdp-K5", "sdp-K10"}
-    from sdp_cli.report.style import method_order   # legends list K in numeric order
+    from sdp_cli.report.figures.style import method_order   # legends list K in numeric order
 
     assert sorted(["sdp-K10", "sdp", "sdp-K2", "dp", "sdp-K5"], key=method_order) == [
         "dp", "sdp", "sdp-K2", "sdp-K5", "sdp-K10"]
     k = pd.read_csv(out / "ablation_k_pendulum.csv")
     assert list(k[k.quantity == "policy cost"].sort_values("k_rollout")["mean"]) == [30.5, 16.0, 15.5]
     assert (out / "ablation_k_pendulum.png").stat().st_size > 10_000
-    from sdp_cli.report.style import COLORS, MARKERS
+    from sdp_cli.report.figures.style import COLORS, MARKERS
 
     from matplotlib.colors import to_rgb
 

@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import save_npz
-from sdp_cli.report.plot_dataset import goal_point, trajectory_points
+from sdp_cli.report.figures.plot_dataset import goal_point, trajectory_points
 from sdp_cli.tasks import get_task
 
 runner = CliRunner()

@@ -160,9 +160,9 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     import numpy as np
     import pandas as pd
 
-    from sdp_cli.report.figures import _loop_t_a
-    from sdp_cli.report.style import COLORS, MARKERS, method_label, method_order
-    from sdp_cli.report.make import method_variants
+    from sdp_cli.report.rows import loop_t_a as _loop_t_a
+    from sdp_cli.report.figures.style import COLORS, MARKERS, method_label, method_order
+    from sdp_cli.report.rows import method_variants
 
     rows = []
     for (h, t_a), its in (((32, 16), (0, 1)), ((64, 63), (0,))):  # Fig. 3: two loops of SDP, seed 0, one unfinished
@@ -203,8 +203,8 @@ def test_loop_figures_use_one_budget_per_method():
     a loop whose n_traj grows over its iterations (Fig. 3's schedule) keeps every iteration."""
     import pandas as pd
 
-    from sdp_cli.report.figures import budget_title
-    from sdp_cli.report.make import largest_budget
+    from sdp_cli.report.figures.paper import budget_title
+    from sdp_cli.report.rows import largest_budget
 
     rows = []
     for method, epochs_all in (("pddp", (1000, 2000)), ("pddp_s", (1000, 2000, 3000))):   # Fig. 1a: PDDP+S has 3e3
@@ -302,7 +302,7 @@ def test_trajectory_titles_say_where_a_solve_did_not_converge():
     policy's line says when the refine from its rollout did not converge."""
     import numpy as np
 
-    from sdp_cli.report.traj import _refine_note
+    from sdp_cli.report.figures.traj import _refine_note
 
     f = {"inst_pol_converged": np.array([True, False])}
     assert _refine_note(f, 0) == "" and _refine_note(f, 1) == ", refine not converged"
@@ -314,7 +314,7 @@ def test_trajectory_figure_draws_each_method_at_its_own_last_iteration():
     earlier iterations are left out."""
     import pandas as pd
 
-    from sdp_cli.report.traj import _last_iterations
+    from sdp_cli.report.figures.traj import _last_iterations
 
     d = pd.DataFrame({"method": ["sdp", "sdp", "sdp", "dp", "dp", "dp", "dp"], "iteration": [0, 1, 2, 0, 1, 2, 3]})
     got = _last_iterations(d)
@@ -339,7 +339,7 @@ def test_fig2b_counts_the_to_alone_solves_once_however_many_runs_repeat_them():
     """Two seeds of a method evaluated on the same 3 instances: the TO-alone histogram has 3 counts, not 6."""
     import pandas as pd
 
-    from sdp_cli.report.figures import _to_alone_once
+    from sdp_cli.report.figures.paper import _to_alone_once
 
     rows = [{"method": m, "guess": g, "iterations": it, "run": f"{m}-s{s}"}
             for m in ("dp", "sdp") for s in (0, 1) for g in ("naive", "policy") for it in (10, 12, 40)]
@@ -354,7 +354,7 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
     An interval reaching below zero runs off a log axis' bottom: "≤0" says so there."""
     import pandas as pd
 
-    from sdp_cli.report import figures
+    from sdp_cli.report.figures import paper as figures
 
     for spread in (1e4, 10.0):            # log axis, linear axis
         rows = []
@@ -386,7 +386,7 @@ def test_timing_table_counts_single_shooting_and_the_measured_wall(tmp_path):
 
     from sdp_cli.data.artifacts import save_timing
     from sdp_cli.evaluate import write_evaluation
-    from sdp_cli.report.timing import timing_table
+    from sdp_cli.report.figures.timing import timing_table
 
     pol = tmp_path / "run" / "it0" / "policy"
     pol.mkdir(parents=True)
@@ -405,3 +405,38 @@ def test_timing_table_counts_single_shooting_and_the_measured_wall(tmp_path):
     save_timing(ev / "eval.csv", {})                                 # an evaluation made before the wall was kept
     t = timing_table(df, "pendulum").iloc[0]
     assert pd.isna(t.eval_wall_s) and t.total_s == 30.0 + 2.0 + 10.0 + 20.0
+
+
+def test_a_new_figure_is_one_registry_entry(tmp_path, monkeypatch):
+    """A figure registered in sdp_cli.report.figures.FIGURES is drawn for every task, listed in the README and
+    cleaned up when it is no longer written (here: the committed small report, regenerated from itself)."""
+    import shutil
+    from pathlib import Path
+
+    import pandas as pd
+
+    from sdp_cli.report import figures
+    from sdp_cli.report.make import make_report
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "small"
+    shutil.copytree(root / "results" / "small", out)
+    (tmp_path / "empty").mkdir()
+    monkeypatch.chdir(tmp_path)               # no params.yaml / pipelines here: report what is there
+
+    def toy(rows, task, out, carried):
+        d = rows[rows.task == task].groupby("method").policy_cost_mean.mean().reset_index()
+        path = out / f"toy_{task}.csv"
+        d.to_csv(path, index=False)
+        return [path]
+
+    extra = figures.FIGURES + (figures.Figure("toy", toy),)
+    monkeypatch.setattr(figures, "FIGURES", extra)
+    monkeypatch.setattr(figures, "REPORT_FILE", __import__("re").compile(
+        r"^(all_runs\.csv|README\.md|(" + "|".join(f.name for f in extra if not f.folder) + r")_.+\.(csv|md|png))$"))
+    make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
+    toy_csv = pd.read_csv(out / "toy_pendulum.csv")
+    assert set(toy_csv.method) == {"sdp", "dp"} and "`toy_pendulum.csv`" in (out / "README.md").read_text()
+    monkeypatch.setattr(figures, "FIGURES", extra[:-1])
+    make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
+    assert not (out / "toy_pendulum.csv").exists()        # stale: the registry no longer has it

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 from sdp_cli.evaluate import write_evaluation
-from sdp_cli.report.carry import Carried, plain_method
+from sdp_cli.report.carry import Carried
+from sdp_cli.report.rows import plain_method
 from sdp_cli.report.make import make_report
 
 ROW = {"task": "pendulum", "method": "sdp", "n_traj": 3, "t_a": 8, "k_rollout": 5, "train_seed": 0, "epochs": 700,

@@ -361,7 +361,7 @@ def test_violations_are_told_apart_by_group_in_the_task_and_the_evaluation():
     older = {"X": Xs, "U": Us, "xi": xis}                                      # a rollout without the group arrays
     assert group_violation_rates(older, {"task": "quadrotor-1"}) == pytest.approx(want)
     # the trajectory figure's words for each rollout and for the whole set
-    from sdp_cli.report.traj import _outcome, _shares
+    from sdp_cli.report.figures.traj import _outcome, _shares
 
     ev["reached"] = np.array([False, False, True])
     assert [_outcome(task, {**ev, **older}, j) for j in range(3)] == [

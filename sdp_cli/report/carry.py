@@ -20,13 +20,13 @@ Figures, the ledger and the metrics use the carried rows like any other.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
 
 from sdp_cli.errors import SdpError
+from sdp_cli.report.rows import plain_method
 from sdp_cli.report.runs import PATH_COLUMNS
 
 
@@ -76,12 +76,6 @@ class Carried:
         (one task, one budget per method), some method has only carried runs, whose rollouts are gone (a
         method with fresh runs at another budget only is not drawn either)."""
         return bool(self.runs) and any(set(g.run) <= self.runs for _, g in rows.groupby("method"))
-
-
-def plain_method(method: str) -> str:
-    """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
-    :func:`sdp_cli.report.make.method_variants`)."""
-    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", method)
 
 
 def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:

@@ -10,7 +10,7 @@ Per task found under ``--runs`` (file names carry the task):
 - ``table2c_<task>``: the T_a trade-off (policy cost, refined cost, TO iterations, rollout,
   solving and total time, TO-alone columns) at the last iteration, CSV and markdown;
 - ``traj_<task>``: trajectories of the first test instances, TO alone vs policy vs refined, each
-  rollout's outcome (:mod:`sdp_cli.report.traj`);
+  rollout's outcome (:mod:`sdp_cli.report.figures.traj`);
 - ``timing_<task>``: where the time goes (collection, training, evaluation), per iteration;
 - variants of a method (K, or (T_h, T_a)) are drawn apart (:func:`method_variants`); all but
   ``fig1`` and ``timing`` show, per method, the runs of the largest budget (:func:`largest_budget`);
@@ -25,7 +25,6 @@ commit that produced it.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import pandas as pd
@@ -35,11 +34,9 @@ from sdp_cli.errors import SdpError
 from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
 from sdp_cli.report.estimates import estimated_hours
-from sdp_cli.report.figures import _loop_t_a, fig1, fig2a, fig2b, table2c
-from sdp_cli.report.timing import timing
-from sdp_cli.report.traj import trajectories
+from sdp_cli.report.rows import largest_budget, loop_t_a, method_variants
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
-from sdp_cli.report.style import save_csv
+from sdp_cli.report.figures.style import save_csv
 
 
 def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:
@@ -84,35 +81,31 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
                            f"run `dvc repro` first")
     written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
-    from sdp_cli.report.curves import loop_costs, training_curves
+    from sdp_cli.report.figures import FIGURES
+    from sdp_cli.report.figures.curves import training_curves
 
-    from sdp_cli.report.ablation import ablation_k
-
-    for task in sorted(df.task.dropna().unique()):
-        written += ablation_k(df, task, out)
     fdf = method_variants(df)
     bdf = largest_budget(fdf)
     carried = Carried(out, kept, fresh_methods(fdf, kept))
-    # fig2b draws one budget per method: a method whose fresh runs are all at another budget still needs its
-    # carried rows there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
+    # one budget per method: a method whose fresh runs are all at another budget still needs its carried rows
+    # there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
     drawn = Carried(out, kept, fresh_methods(bdf, kept))
-    kept_traj = []
+    rows = {"raw": (df, None), "variants": (fdf, carried), "budget": (bdf, drawn)}
+    kept_traj = [t for t in sorted(bdf.task.dropna().unique())
+                 if carried.keeps_traj(bdf[bdf.task == t]) and (out / f"traj_{t}.png").is_file()]
+    for fig in (f for f in FIGURES if f.rows == "raw"):        # the raw rows' figures first, then per task
+        for task in sorted(df.task.dropna().unique()):
+            written += fig.draw(df, task, out, None)
     for task in sorted(fdf.task.dropna().unique()):
-        written += fig1(fdf, task, out)                      # every dataset size and epoch count
-        written += timing(fdf, task, out, carried)
-        written += fig2a(bdf, task, out) + fig2b(bdf, task, out, drawn) + table2c(bdf, task, out)   # one budget per method
-        if carried.keeps_traj(bdf[bdf.task == task]) and (out / f"traj_{task}.png").is_file():
-            written.append(out / f"traj_{task}.png")
-            kept_traj.append(task)
-        else:
-            written += trajectories(bdf, task, out)
-        written += loop_costs(bdf, task, out, _loop_t_a(bdf[bdf.task == task]))
+        for fig in (f for f in FIGURES if f.rows != "raw"):
+            d, c = rows[fig.rows]
+            written += fig.draw(d, task, out, c)
     written += training_curves(df, out) + [p for r in sorted(kept) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
     if metrics is not None:
-        from sdp_cli.report.curves import metrics_summary, write_metrics
+        from sdp_cli.report.figures.curves import metrics_summary, write_metrics
 
-        rows = pd.concat([_loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
-        write_metrics(metrics_summary(rows), Path(metrics))
+        loop_rows = pd.concat([loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
+        write_metrics(metrics_summary(loop_rows), Path(metrics))
     written.append(_index(fdf, runs, out, experiment, written, carried_lines(fdf, carried, kept_traj)))
     _remove_stale(out, written)
     if out.resolve().parent.name == "results":
@@ -120,58 +113,14 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     return written
 
 
-def _first_rows(df: pd.DataFrame) -> pd.DataFrame:
-    """Each run's rows at its first evaluated iteration (where its loop T_a and first dataset are read)."""
-    return df[df.iteration == df.groupby("run").iteration.transform("min")]
-
-
-def method_variants(df: pd.DataFrame) -> pd.DataFrame:
-    """For the figures: where one task has runs of a method that differ in how the policy acts, the
-    variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
-    method): several diffusion step counts (the K ablation) make ``<method>-K<k>``; several (T_h, T_a)
-    pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
-    ``<method>-h<T_h>-ta<T_a>``."""
-    if df.empty:
-        return df
-    df = df.copy()
-    if "k_rollout" in df:
-        ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
-        mixed = (ks > 1) & df.k_rollout.notna()
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
-    if {"horizon", "t_a", "run", "iteration"} <= set(df.columns):
-        loop_t_a = df.run.map(_first_rows(df).groupby("run").t_a.min())
-        pair = df.horizon.astype("Int64").astype(str) + "-ta" + loop_t_a.astype("Int64").astype(str)
-        mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & loop_t_a.notna()
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
-    return df
-
-
-def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
-    """The rows behind ``fig2a``, ``fig2b``, ``table2c``, ``traj`` and ``loop/``: per task and method, the rows
-    at the most epochs (a run evaluated at several epoch counts has a row per count) of the runs with the
-    largest first dataset (n_traj at the run's first iteration). Fig. 1's sweeps would otherwise be averaged
-    into one point per iteration whose "seeds" are runs of different budgets; the loops of one budget (Fig. 2-4)
-    keep every row. ``fig1`` shows all budgets."""
-    if df.empty or not {"run", "iteration", "epochs", "n_traj"} <= set(df.columns):
-        return df
-    by = [df.task, df.method]
-    keep = (df.epochs == df.epochs.groupby(by).transform("max")) | df.epochs.isna()
-    first = _first_rows(df).groupby("run").n_traj.max()
-    n_traj = df.run.map(first).where(keep)
-    keep &= (n_traj == n_traj.groupby(by).transform("max")) | df.run.map(first).isna()
-    return df[keep]
-
-
-#: the files ``sdp report`` writes into its output folder (hand-written ones such as NOTES.md are kept)
-REPORT_FILE = re.compile(r"^(all_runs\.csv|README\.md|(fig1|fig2a|fig2b|table2c|traj|timing|ablation_k)_.+\.(csv|md|png))$")
-
-
 def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
     """Delete report files an earlier report left in ``out`` that this one did not write
     (e.g. a task or a figure whose runs are gone), so the folder shows this report only."""
     keep = {p.resolve() for p in written}
+    from sdp_cli.report.figures import FIGURES, REPORT_FILE
+
     stale = [p for p in out.iterdir() if p.is_file() and REPORT_FILE.match(p.name) and p.resolve() not in keep]
-    for sub in ("curves", "loop"):    # the dvc plots series are all the report's
+    for sub in ["curves"] + [f.name for f in FIGURES if f.folder]:    # the dvc plots series are all the report's
         if (out / sub).is_dir():
             stale += [p for p in (out / sub).iterdir() if p.is_file() and p.resolve() not in keep]
     for p in stale:

@@ -129,20 +129,6 @@ def _backfill_older_rows(df: pd.DataFrame) -> pd.DataFrame:
     return _loop_n_algo(_backfill(df, "terminal_cost_mean", "rollouts", _terminal_cost))
 
 
-def mean_ci(values: pd.Series) -> tuple[float, float, int]:
-    """Mean and 95% confidence half-width (normal approximation over seeds) of finite values;
-    the mean is +inf if any value is infinite (a diverged seed); the half-width is NaN (no
-    interval) with fewer than two seeds."""
-    v = np.asarray(values, dtype=float)
-    if np.any(np.isinf(v)):
-        return float("inf"), float("nan"), len(v)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return float("nan"), float("nan"), 0
-    half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else float("nan")
-    return float(v.mean()), float(half), int(v.size)
-
-
 def run_revisions(df: pd.DataFrame) -> pd.DataFrame:
     """The code revision of each evaluation (from its manifest): ``(task, method, train_seed, iteration,
     git_rev)`` rows (a resumed loop may span several commits; seeds may be run by different ones)."""

@@ -10,8 +10,9 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.figures import _loop_t_a, _named
-from sdp_cli.report.style import COLORS, method_label, method_order, pyplot, save_fig
+from sdp_cli.report.figures.paper import _named
+from sdp_cli.report.rows import loop_t_a
+from sdp_cli.report.figures.style import COLORS, method_label, method_order, pyplot, save_fig
 
 
 def _best_rollout(d: pd.DataFrame):
@@ -55,6 +56,15 @@ def _refine_note(f: dict, j: int) -> str:
     return ", refine not converged" if ok is not None and not bool(ok[j]) else ""
 
 
+def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
+    """``traj_<task>.png`` (:func:`trajectories`), or the earlier report's where some method it draws has only
+    carried runs, whose rollouts are gone (``carried``: :class:`~sdp_cli.report.carry.Carried`)."""
+    kept = out / f"traj_{task}.png"
+    if carried is not None and carried.keeps_traj(df[df.task == task]) and kept.is_file():
+        return [kept]
+    return trajectories(df, task, out)
+
+
 def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
     """TO alone vs each method's policy and refined solution on a few test instances (the best
     run of each method at the last iteration it reached; the test instances are the same for all).
@@ -64,10 +74,10 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     start (blue dot) and goal (red star) of each instance. TO alone and refined come from the refine
     artifact's ``inst_base_X`` / ``inst_pol_X``.
     """
-    from sdp_cli.report.plot_dataset import _draw_columns_top, goal_point, trajectory_points
+    from sdp_cli.report.figures.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
 
-    d = _loop_t_a(df[df.task == task_name])
+    d = loop_t_a(df[df.task == task_name])
     d = _last_iterations(d)
     found = {m: _best_rollout(g) for m, g in d.groupby("method")}
     found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_timing
-from sdp_cli.report.style import save_csv, save_md
+from sdp_cli.report.figures.style import save_csv, save_md
 
 
 def _policy_dir(policy) -> Path | None:

@@ -4,9 +4,10 @@ The ledger reads what ``sdp report`` wrote, never a run folder: ``results/<exper
 (one row per run, iteration and T_a), ``results/bench/*.csv`` (speed ratios measured side by side by
 the ``bench/`` scripts), ``results/estimates/*.txt`` (saved ``sdp pipeline NAME --estimate`` tables: the
 hours of runs not made) and ``results/claims.yaml`` (hand-written: each claim's text, the paper's number,
-the experiments it needs, the estimate of a run not made, and the notes that explain a difference).
-Our numbers and the verdicts are computed by the rules of :mod:`sdp_cli.report.claims`, the same for
-every claim:
+the experiments it needs, the rule that judges it with its parameters, the estimate of a run not made, and
+the notes that explain a difference; the thresholds shared by every claim are its top-level ``rules``).
+Our numbers and the verdicts are computed by the rules of :mod:`sdp_cli.report.ledger.rules` with the generic
+verdicts of :mod:`sdp_cli.report.ledger.verdicts`, the same for every claim:
 
 - a quantity is the mean over seeds with a 95% interval (normal approximation, :func:`mean_ci`);
 - a ratio claim r_paper > 1 is *reproduced* when ours keeps at least half of the paper's effect,
@@ -27,7 +28,8 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
-from sdp_cli.report.claims import CLAIMS, Row
+from sdp_cli.report.ledger.rules import RULES, Row
+from sdp_cli.report.ledger.verdicts import pct_text
 from sdp_cli.report.estimates import read_estimate
 
 
@@ -49,26 +51,37 @@ def _available(needs, res) -> bool:
     return all(any(alt in res for alt in need.split("|")) for need in needs)
 
 
-def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict]) -> list[dict]:
+class Params(dict):
+    """A claim's parameters: a key the yaml does not give is one clear error, not a "missing column"."""
+
+    def __init__(self, cid: int, values: dict):
+        super().__init__(values)
+        self.cid = cid
+
+    def __missing__(self, key):
+        raise SdpError(f"claim {self.cid}: results/claims.yaml gives no {key!r} (in its params or the shared rules)")
+
+
+def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
+    """One row per claim: its rule (``rule:``, from :data:`RULES`) on ``res`` with the claim's ``params`` over the
+    shared ``rules``, or *not run* when an experiment it ``needs`` has no report."""
     rows = []
     for c in claims:
         cid = int(c["id"])
-        needs, fn = CLAIMS.get(cid, ((str(c.get("experiment", "?")),), None))
-        if not _available(needs, res):
+        if not _available(c["needs"], res):
             row = Row("", "not run", c.get("not_run", ""))
-        elif fn is None:
-            raise SdpError(f"claim {cid} has runs ({c.get('experiment')}) but no rule in sdp_cli/report/claims.py "
-                           "to compute our number: add one to CLAIMS")
         else:
             try:
-                row = fn(res)
+                row = RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {})}))
             except (KeyError, AttributeError) as e:    # a column missing from an older report
                 raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
         rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail})
     return rows
 
 
-def read_claims(path: Path) -> list[dict]:
+def read_claims(path: Path) -> tuple[list[dict], dict]:
+    """``(claims, rules)`` of a claims file; every claim names experiments it ``needs`` (a list; ``a|b``: either)
+    and a ``rule`` of :data:`RULES`."""
     import yaml
 
     try:
@@ -76,25 +89,42 @@ def read_claims(path: Path) -> list[dict]:
     except (OSError, yaml.YAMLError) as e:
         raise SdpError(f"cannot read the claims file {path}: {e}") from None
     claims = (spec or {}).get("claims") if isinstance(spec, dict) else None
-    if not isinstance(claims, list) or not all(isinstance(c, dict) and {"id", "claim", "paper"} <= set(c) for c in claims):
-        raise SdpError(f"{path}: expected `claims:` a list of entries with id, claim and paper")
-    return claims
+    need = {"id", "claim", "paper", "needs", "rule"}
+    if not isinstance(claims, list) or not all(isinstance(c, dict) and need <= set(c) for c in claims):
+        raise SdpError(f"{path}: expected `claims:` a list of entries with {', '.join(sorted(need))}")
+    for c in claims:
+        if c["rule"] not in RULES:
+            raise SdpError(f"{path}: claim {c['id']}: unknown rule {c['rule']!r}; known: {', '.join(sorted(RULES))}")
+        if not (isinstance(c["needs"], list) and c["needs"]):
+            raise SdpError(f"{path}: claim {c['id']}: needs must be a list of experiments, got {c['needs']!r}")
+        if not isinstance(c.get("params") or {}, dict):
+            raise SdpError(f"{path}: claim {c['id']}: params must be a mapping")
+    rules = spec.get("rules") or {}
+    if not isinstance(rules, dict):
+        raise SdpError(f"{path}: rules must be a mapping")
+    return claims, rules
+
+
+def _share(x: float) -> str:
+    return {0.5: "half", 0.1: "a tenth"}.get(x, pct_text(x))
 
 
 def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Path:
     """Write the ledger ``path`` (``results/PAPER.md``) from the reports in its folder."""
     path = Path(path)
     results = path.parent
-    claims = read_claims(Path(claims_file) if claims_file else results / "claims.yaml")
+    claims, rules = read_claims(Path(claims_file) if claims_file else results / "claims.yaml")
     res = load_results(results)
-    rows = ledger_rows(res, claims)
+    rows = ledger_rows(res, claims, rules)
     lines = ["# The paper's claims beside our numbers", "",
              "Written by `sdp report --ledger results/PAPER.md` from `results/*/all_runs.csv`, `results/bench/*.csv`,",
              "`results/estimates/*.txt` (hours of runs not made) and `results/claims.yaml` (the claims, the paper's",
              "numbers and the notes); do not edit by hand.",
-             "Rules (the same for every claim, `sdp_cli/report/verdicts.py`): means over seeds with 95% intervals; a",
-             "ratio claim is *reproduced* when ours keeps at least half of the paper's effect (r - 1), *partly* with",
-             "at least a tenth of it; a policy *solves* a task at >= 50% success; runs that have not reached the",
+             "Rules (the same for every claim, `sdp_cli/report/ledger/verdicts.py`): means over seeds with 95% intervals; a",
+             f"ratio claim is *reproduced* when ours keeps at least {_share(rules['keep'])} of the paper's effect (r - 1), "
+             "*partly* with",
+             f"at least {_share(rules['partly'])} of it; a policy *solves* a task at >= {pct_text(rules['solved'])} "
+             "success; runs that have not reached the",
              "final iteration are left out and named; *not run* gives the estimate.", "",
              "| # | claim | where | paper | ours | verdict |", "|---|---|---|---|---|---|"]
     for r in rows:
@@ -105,7 +135,7 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
         text = " ".join(x.rstrip(".") + "." for x in (r["detail"], str(r.get("notes", "")).strip()) if x)
         if text:
             lines.append(f"- **{r['id']}.** {text}")
-    used = {alt for needs, _ in CLAIMS.values() for need in needs for alt in need.split("|")}
+    used = {alt for c in claims for need in c["needs"] for alt in need.split("|")}
     exps = sorted(k for k in res if k in used and not k.startswith("bench/"))
     lines += ["", "Reports read: " + (", ".join(f"[{e}]({e}/README.md)" for e in exps) or "none") + "; "
               + (", ".join(f"`{k}.csv`" for k in sorted(res) if k.startswith("bench/")) or "no bench results") + "."]

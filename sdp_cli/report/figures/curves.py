@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.report.timing import _policy_dir
+from sdp_cli.report.figures.timing import _policy_dir
 
 MAX_ROWS = 500
 CURVE_FIELDS = ["step", "epoch", "loss", "dp", "sobolev", "lr"]
@@ -71,8 +71,11 @@ def write_metrics(summary: dict, path: Path) -> Path:
     return atomic_write_bytes(path, lambda f: f.write(json.dumps(summary, indent=2, sort_keys=True).encode()))
 
 
-def loop_costs(df: pd.DataFrame, task: str, out: Path, loop_rows: pd.DataFrame) -> list[Path]:
-    """``loop/<task>-<method>.csv``, x = iteration (``loop_rows``: the rows at the loop's T_a)."""
+def loop_costs(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
+    """``loop/<task>-<method>.csv``, x = iteration, at the loop's T_a (:func:`~sdp_cli.report.rows.loop_t_a`)."""
+    from sdp_cli.report.rows import loop_t_a
+
+    loop_rows = loop_t_a(df[df.task == task])
     cols = {"policy_cost_mean": "policy", "refined_cost_mean": "refined", "success_rate": "success"}
     written = []
     for method, g in loop_rows.groupby("method"):

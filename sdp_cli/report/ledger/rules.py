@@ -1,11 +1,12 @@
 """The claims' rules: our number and a verdict per claim of the paper, from report tables.
 
 Each rule takes ``res`` (``{experiment: all_runs.csv rows, "bench/<name>": bench CSV}``, see
-:func:`sdp_cli.report.ledger.load_results`) and returns a :class:`Row`. The rules are the same for
-every claim (:mod:`sdp_cli.report.ledger`'s docstring): means over seeds with 95% intervals, ratio
-claims judged by :func:`ratio_verdict`, "solves" at :data:`SOLVED` success, runs that have not reached
-their task's final iteration left out and named. ``CLAIMS`` maps a claim id to the experiments it
-needs and its rule.
+:func:`sdp_cli.report.ledger.load_results`) and ``p``, the claim's ``params`` from results/claims.yaml
+over its top-level ``rules`` (the paper's numbers, thresholds, tasks and loops live there, never here),
+and returns a :class:`Row`. Verdicts come from the generic rules of :mod:`sdp_cli.report.ledger.verdicts`:
+means over seeds with 95% intervals, ratio claims judged by :func:`ratio_verdict`, "solves" at ``p["solved"]``
+success, runs that have not reached their task's final iteration left out and named. A claim names its rule
+in the yaml (``rule:``); :data:`RULES` holds them by name.
 """
 
 from __future__ import annotations
@@ -13,35 +14,35 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.claims_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
-from sdp_cli.report.figures import _loop_t_a
-from sdp_cli.report.verdicts import (SOLVED, VERDICTS, Row, _last, _per_seed, _unfinished, combine, fmt,
-                                     ratio_verdict)
+from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
+from sdp_cli.report.rows import last_iteration, loop_t_a, per_seed, unfinished
+from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, fmt, pct_text, ratio_verdict
 
-__all__ = ["CLAIMS", "SOLVED", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
+__all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
 
 
 # ---------------------------------------------------------------------------- the claims' numbers
-def fig2_only_sdp(res) -> Row:
+def fig2_only_sdp(res, p) -> Row:
     d = res["fig2"]
-    last = _last(d)
+    last = last_iteration(d)
     parts, solved = [], {}
     for m in ("sdp", "dp", "pddp", "pddp_s"):
         g = last[last.method == m]
         if g.empty:
             parts.append(f"{m.upper()}: " + ("not finished" if (d.method == m).any() else "not run"))
             continue
-        sr = _per_seed(g, "success_rate")
-        solved[m] = sr.mean() >= SOLVED
-        parts.append(f"{m.upper()} {fmt(_per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}")
-    sdp = _loop_t_a(d[d.method == "sdp"])
+        sr = per_seed(g, "success_rate")
+        solved[m] = sr.mean() >= p["solved"]
+        parts.append(f"{m.upper()} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}")
+    sdp = loop_t_a(d[d.method == "sdp"])
     near = ""
-    if not sdp.empty and (sdp.iteration >= 2).any():
-        it3 = _per_seed(sdp[sdp.iteration == 2], "policy_cost_mean")
-        ref = _per_seed(last[last.method == "sdp"], "refined_cost_mean")
-        near_ok = it3.mean() <= 1.1 * ref.mean()
-        near = (f"; SDP after 3 iterations {fmt(it3)} vs its final refined {fmt(ref)} "
-                f"({'within' if near_ok else 'not within'} 10%)")
+    k = p["near_iteration"] - 1
+    if not sdp.empty and (sdp.iteration >= k).any():
+        it3 = per_seed(sdp[sdp.iteration == k], "policy_cost_mean")
+        ref = per_seed(last[last.method == "sdp"], "refined_cost_mean")
+        near_ok = it3.mean() <= (1 + p["within"]) * ref.mean()
+        near = (f"; SDP after {p['near_iteration']} iterations {fmt(it3)} vs its final refined {fmt(ref)} "
+                f"({'within' if near_ok else 'not within'} {pct_text(p['within'])})")
     else:
         near_ok = False
     others = [m for m in ("dp", "pddp", "pddp_s") if m in solved]
@@ -53,29 +54,29 @@ def fig2_only_sdp(res) -> Row:
         verdict = "reproduced" if (len(others) == 3 and near_ok) else "partly"
     missing = [m for m in ("dp", "pddp", "pddp_s") if m not in solved]
     detail = "; ".join(x for x in (f"methods without a finished run yet: {', '.join(missing)}" if missing else "",
-                                   _unfinished(d)) if x)
+                                   unfinished(d)) if x)
     return Row("; ".join(parts) + near, verdict, detail)
 
 
-def fig2_to_alone(res) -> Row:
-    last = _last(res["fig2"])
+def fig2_to_alone(res, p) -> Row:
+    last = last_iteration(res["fig2"])
     sdp = last[last.method == "sdp"]
     fail_ms = 1 - sdp.to_alone_converged_rate.mean()
     fail_ss = 1 - sdp.ss_to_alone_converged_rate.mean() if "ss_to_alone_converged_rate" in sdp else np.nan
-    it_ms = _per_seed(sdp, "refined_iterations_mean")
-    it_ss = _per_seed(sdp, "ss_refined_iterations_mean") if "ss_refined_iterations_mean" in sdp else pd.Series(dtype=float)
+    it_ms = per_seed(sdp, "refined_iterations_mean")
+    it_ss = per_seed(sdp, "ss_refined_iterations_mean") if "ss_refined_iterations_mean" in sdp else pd.Series(dtype=float)
     ours = (f"TO alone fails {100 * fail_ms:.0f}% (multiple shooting, {sdp.to_alone_iterations_mean.mean():.0f} it.), "
             f"{100 * fail_ss:.0f}% (single shooting, {sdp.ss_to_alone_iterations_mean.mean():.0f} it.); "
             f"refining the final SDP: {fmt(it_ms)} it. (multiple shooting), {fmt(it_ss)} it. (single shooting)")
     ours += (f"; cost: TO alone {sdp.to_alone_cost_mean.mean():.3g} (multiple shooting), "
              f"{sdp.ss_to_alone_cost_mean.mean():.3g} (single shooting), refined from the final SDP "
-             f"{fmt(_per_seed(sdp, 'refined_cost_mean'))}")
-    hits = [f >= 0.4 for f in (fail_ms, fail_ss) if np.isfinite(f)]
+             f"{fmt(per_seed(sdp, 'refined_cost_mean'))}")
+    hits = [f >= p["fail_rate"] for f in (fail_ms, fail_ss) if np.isfinite(f)]
     verdict = "reproduced" if hits and all(hits) else "partly" if any(hits) else "not reproduced"
-    return Row(ours, verdict, _unfinished(res["fig2"]))
+    return Row(ours, verdict, unfinished(res["fig2"]))
 
 
-def table2c(res) -> Row:
+def table2c(res, p) -> Row:
     d = res["fig2"]
     d = d[(d.method == "sdp") & (d.iteration == d[d.method == "sdp"].iteration.max())]
     if d.t_a.nunique() < 3:
@@ -88,26 +89,28 @@ def table2c(res) -> Row:
     to_ms, to_ss = d.to_alone_solve_time_mean.mean(), d.ss_to_alone_solve_time_mean.mean()
     t1 = min(solve.index)
     r_ms, r_ss = to_ms / solve[t1], to_ss / ss_solve[t1]
-    lo = cost[cost.index <= 9].min()
-    hi = cost[cost.index >= 12]
+    best, worse, mid = p["best_t_a_max"], p["degraded_t_a_min"], p["trade_off_t_a"]
+    lo = cost[cost.index <= best].min()
+    hi = cost[cost.index >= worse]
     degr = hi.max() / lo if len(hi) else np.nan
-    t9 = 9 if 9 in roll.index else roll.index[np.argmin(abs(roll.index - 9))]
+    t9 = mid if mid in roll.index else roll.index[np.argmin(abs(roll.index - mid))]
     ours = (f"T_a {t1}: refine {solve[t1]:.3g} s vs TO alone {to_ms:.3g} s ({r_ms:.1f}x, multiple shooting), "
             f"{ss_solve[t1]:.3g} s vs {to_ss:.3g} s ({r_ss:.1f}x, single shooting); T_a {t9}: rollout "
-            f"{roll[t9]:.3g} s, solve {solve[t9]:.3g} s / {ss_solve[t9]:.3g} s; policy cost at T_a >= 12: "
-            + ", ".join(f"{c:.3g}" for c in hi) + f" vs best {lo:.3g} at T_a <= 9 ({degr:.2f}x)")
-    v = [ratio_verdict(r_ss, 4.1 / 0.22), ratio_verdict(degr, 137 / 33.5)]
+            f"{roll[t9]:.3g} s, solve {solve[t9]:.3g} s / {ss_solve[t9]:.3g} s; policy cost at T_a >= {worse}: "
+            + ", ".join(f"{c:.3g}" for c in hi) + f" vs best {lo:.3g} at T_a <= {best} ({degr:.2f}x)")
+    v = [ratio_verdict(r_ss, p["speedup"][0] / p["speedup"][1], p["keep"], p["partly"]),
+         ratio_verdict(degr, p["degradation"][0] / p["degradation"][1], p["keep"], p["partly"])]
     verdict = combine(v)
     return Row(ours, verdict, f"speed-up verdict (single shooting, the paper's solver family): {v[0]}; "
                               f"degradation verdict: {v[1]}; times are per instance on our CPU")
 
 
-def speedup(res) -> Row:
+def speedup(res, p) -> Row:
     parts, verdicts = [], []
-    for exp in ("fig2", "fig3", "fig4"):
+    for exp in p["experiments"]:
         if exp not in res:
             continue
-        last = _last(res[exp])
+        last = last_iteration(res[exp])
         last = last[last.method == "sdp"]
         # Fig. 3 runs one loop per (T_h, T_a): a ratio per loop, not pooled over them
         keys = ["task", "horizon", "t_a"] if {"horizon", "t_a"} <= set(last.columns) else ["task"]
@@ -124,56 +127,56 @@ def speedup(res) -> Row:
                     continue
                 r = (sdp[to] / sdp[ref]).groupby(sdp.train_seed).mean()
                 parts.append(f"{exp} {where} {name}: {fmt(r, unit='x')}")
-                verdicts.append("reproduced" if r.mean() >= 2 else "partly" if r.mean() > 1 else "not reproduced")
+                verdicts.append(ratio_verdict(r.mean(), p["ratio"], p["keep"], p["partly"]))
     if not parts:
         return Row("", "not run")
     verdict = combine(verdicts)
-    return Row("; ".join(parts), verdict, "; ".join(x for x in (_unfinished(res[e]) for e in ("fig2", "fig3", "fig4")
+    return Row("; ".join(parts), verdict, "; ".join(x for x in (unfinished(res[e]) for e in p["experiments"]
                                                                 if e in res) if x))
 
 
-def epoch_cost(res) -> Row:
+def epoch_cost(res, p) -> Row:
     b = res["bench/train_step"]
     b = b[b["mode"] == "sdp-jvp"]
     if b.empty:
         return Row("", "not run", "results/bench/train_step.csv has no sdp-jvp row")
-    ok = [abs(r - 2) <= 0.5 for r in b.cpu_ratio_to_dp]
+    ok = [abs(r - p["ratio"]) <= p["tolerance"] for r in b.cpu_ratio_to_dp]
     ours = "; ".join(f"{r.cpu_ratio_to_dp:.2f} ({r.setting}, load {r.load})" for r in b.itertuples())
-    return Row(f"SDP step / DP step, CPU time: {ours}", "reproduced" if all(ok) else "partly" if any(ok) else
-               "not reproduced", "bench/train_step.py, DP and SDP steps interleaved in one run, 1 thread; "
+    return Row(f"SDP step / DP step, CPU time: {ours}", all_any(ok), "bench/train_step.py, DP and SDP steps interleaved in one run, 1 thread; "
                "an epoch is the same number of steps for both, so the step ratio is the epoch ratio")
 
 
-def k_steps(res) -> Row:
+def k_steps(res, p) -> Row:
     d = res["ablation_k"]
     d = d[d.epochs == d.epochs.max()]
     parts, means = [], {}
     for k, g in d.groupby("k_rollout"):
         means[int(k)] = g.policy_cost_mean.mean()
-        parts.append(f"K={int(k)}: {fmt(_per_seed(g, 'policy_cost_mean'))}, success {fmt(_per_seed(g, 'success_rate'), pct=True)}")
+        parts.append(f"K={int(k)}: {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(per_seed(g, 'success_rate'), pct=True)}")
     to = d.to_alone_cost_mean.mean()
-    if 5 not in means or 10 not in means:
-        return Row("; ".join(parts), "partly", "K=5 or K=10 missing")
-    verdict = "reproduced" if means[5] <= 1.1 * means[10] else "not reproduced"
+    k, ref = p["k"], p["reference_k"]
+    if k not in means or ref not in means:
+        return Row("; ".join(parts), "partly", f"K={k} or K={ref} missing")
+    verdict = "reproduced" if means[k] <= (1 + p["within"]) * means[ref] else "not reproduced"
     return Row("; ".join(parts) + f" (TO alone {to:.3g}; {int(d.epochs.max())} epochs, n_traj 10)", verdict,
-               "rule: K=5 within 10% of K=10's mean cost")
+               f"rule: K={k} within {pct_text(p['within'])} of K={ref}'s mean cost")
 
 
-def quadrotor_precision(res) -> Row:
+def quadrotor_precision(res, p) -> Row:
     """Claim 9 (Fig. 4): per quadrotor layout, success (reaching the target) and the share of rollouts
     that break a constraint (obstacles, floor, ceiling; and an obstacle alone where the rows have
     ``obstacles_violation_rate``), SDP vs DP, at the last iteration."""
-    last = _last(res["fig4"])
+    last = last_iteration(res["fig4"])
     parts, ok, both = [], [], set()
     for task in sorted(t for t in last.task.unique() if str(t).startswith("quadrotor")):
         g = last[last.task == task]
         by = {m: g[g.method == m] for m in ("sdp", "dp") if (g.method == m).any()}
         if not by:
             continue
-        s = {m: _per_seed(x, "success_rate").mean() for m, x in by.items()}
-        v = {m: _per_seed(x, "violation_rate").mean() for m, x in by.items()}
+        s = {m: per_seed(x, "success_rate").mean() for m, x in by.items()}
+        v = {m: per_seed(x, "violation_rate").mean() for m, x in by.items()}
         dist = {m: x.goal_distance_median.median() for m, x in by.items()}
-        o = ({m: _per_seed(x, "obstacles_violation_rate").mean() for m, x in by.items()}
+        o = ({m: per_seed(x, "obstacles_violation_rate").mean() for m, x in by.items()}
              if "obstacles_violation_rate" in g and g.obstacles_violation_rate.notna().any() else None)
 
         def vs(d, fmt):   # "SDP x vs DP y", or one method's value where the other was not run
@@ -187,29 +190,32 @@ def quadrotor_precision(res) -> Row:
                      f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")
         if not missing:
             both.add(task)
-            ok.append(s["sdp"] >= SOLVED and s["sdp"] > s["dp"] and (task == "quadrotor-0" or v["dp"] >= v["sdp"]))
-    layouts = {"quadrotor-0", "quadrotor-1", "quadrotor-3"}
+            ok.append(s["sdp"] >= p["solved"] and s["sdp"] > s["dp"]
+                      and (task in p["obstacle_free"] or v["dp"] >= v["sdp"]))
+    layouts = set(p["layouts"])
     full = layouts <= both
     verdict = ("reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced")
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
         "" if full else "layouts without both SDP and DP yet: " + ", ".join(sorted(layouts - both)),
-        _unfinished(res["fig4"]), "rule: SDP solves (>= 50%), beats DP, and violates constraints no more often") if x))
+        unfinished(res["fig4"]), f"rule: SDP solves (>= {pct_text(p['solved'])}), beats DP, and violates constraints "
+                                 "no more often") if x))
 
 
-def quadrotor9_times(res) -> Row:
+def quadrotor9_times(res, p) -> Row:
     """Claim 10: quadrotor-9, mean TO solve time from the naive guess vs from the final SDP's and DP's rollouts."""
-    last = _last(res["fig4"])
-    q = last[last.task == "quadrotor-9"]
-    runs = res["fig4"][res["fig4"].task == "quadrotor-9"]
-    unfinished = _unfinished(runs)
+    last = last_iteration(res["fig4"])
+    q = last[last.task == p["task"]]
+    runs = res["fig4"][res["fig4"].task == p["task"]]
+    todo = unfinished(runs)
     if q.empty or (not (q.method == "sdp").any() and (runs.method == "sdp").any()):
         # SDP's loop partway: both at the latest iteration both reached, and DP's final times where it finished
         dp = q[q.method == "dp"]
         final = (f"; DP at its final iteration {dp.iteration.max() + 1:g}: TO alone "
                  f"{dp.to_alone_solve_time_mean.mean():.3g} s, from DP {dp.refined_solve_time_mean.mean():.3g} s"
                  if len(dp) else "")
-        return Row(_q9_partway(runs) + final, "not run", unfinished or "quadrotor-9 not run yet")
+        return Row(_q9_partway(runs) + final, "not run", todo or f"{p['task']} not run yet")
     parts, verdicts = [], []
+    alone, warm = p["paper_times"]
     for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
         col = f"{pre}refined_solve_time_mean"
         if col not in q or q[col].isna().all():
@@ -219,10 +225,11 @@ def quadrotor9_times(res) -> Row:
         parts.append(f"{name}: TO alone {to:.3g} s, from SDP " + (f"{t['sdp']:.3g} s" if "sdp" in t else "n/a")
                      + (f", from DP {t['dp']:.3g} s" if "dp" in t else ""))
         if "sdp" in t:
-            verdicts.append(ratio_verdict(to / t["sdp"], 16.3 / 7.8))
+            verdicts.append(ratio_verdict(to / t["sdp"], alone / warm, p["keep"], p["partly"]))
     verdict = combine(verdicts) if verdicts else "not run"   # DP alone says nothing of the claim
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        unfinished, "rule: TO alone / from SDP against the paper's 16.3 / 7.8 = 2.1x, per baseline") if x))
+        todo, f"rule: TO alone / from SDP against the paper's {alone:g} / {warm:g} = {alone / warm:.1f}x, per "
+              "baseline") if x))
 
 
 def _q9_partway(d: pd.DataFrame) -> str:
@@ -230,7 +237,7 @@ def _q9_partway(d: pd.DataFrame) -> str:
     shown beside the verdict "not run", never judged (the claim is about the final policies)."""
     if d.empty or not {"sdp", "dp"} <= set(d.method):
         return ""
-    d = _loop_t_a(d)
+    d = loop_t_a(d)
     it = int(min(d[d.method == m].iteration.max() for m in ("sdp", "dp")))
     g = d[d.iteration == it]
     t = {m: g[g.method == m] for m in ("sdp", "dp")}
@@ -243,16 +250,16 @@ def _q9_partway(d: pd.DataFrame) -> str:
             f"from DP {pct(t['dp'].refined_converged_rate.mean())}")
 
 
-def ur5_long_actions(res) -> Row:
+def ur5_long_actions(res, p) -> Row:
     """Claim 8 (Fig. 3): per UR5 variant and (T_h, T_a), SDP's success at the last iteration, and the
     TO iterations and cost from SDP's guess against TO alone; DP's beside it where it ran. "not run"
     until SDP has reached the last iteration (DP's numbers alone say nothing of the claim)."""
-    last = _last(res["fig3"])
+    last = last_iteration(res["fig3"])
     it = f"iteration {last.iteration.max() + 1:g}" if len(last) else ""
-    unfinished = _unfinished(res["fig3"])
+    todo = unfinished(res["fig3"])
 
     def part(g) -> str:
-        return (f"success {100 * _per_seed(g, 'success_rate').mean():.0f}%, TO iterations "
+        return (f"success {100 * per_seed(g, 'success_rate').mean():.0f}%, TO iterations "
                 f"{g.refined_iterations_mean.mean():.3g} vs {g.to_alone_iterations_mean.mean():.3g} alone, "
                 f"cost {g.refined_cost_mean.mean():.3g} vs {g.to_alone_cost_mean.mean():.3g}")
 
@@ -262,7 +269,7 @@ def ur5_long_actions(res) -> Row:
         dp = "; ".join(f"{task} (T_h {h:g}, T_a {t_a:g}) DP at {it}: {part(g[g.method == 'dp'])}"
                        for (task, h, t_a), g in loops.items() if (g.method == "dp").any())
         started = (res["fig3"].method == "sdp").any()     # then named among the unfinished runs
-        return Row(dp, "not run", "; ".join(x for x in ("" if started else "SDP not run yet", unfinished) if x))
+        return Row(dp, "not run", "; ".join(x for x in ("" if started else "SDP not run yet", todo) if x))
     parts, ok = [], []
     for (task, h, t_a), g in loops.items():
         s, dp = g[g.method == "sdp"], g[g.method == "dp"]
@@ -271,20 +278,16 @@ def ur5_long_actions(res) -> Row:
             parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}): SDP {'not finished' if begun else 'not run yet'}, "
                          f"DP {part(dp)}")
             continue
-        rate = _per_seed(s, "success_rate").mean()
+        rate = per_seed(s, "success_rate").mean()
         faster = s.refined_iterations_mean.mean() < s.to_alone_iterations_mean.mean()
         better = s.refined_cost_mean.mean() <= s.to_alone_cost_mean.mean()
-        ok.append(rate >= SOLVED and faster and better)
+        ok.append(rate >= p["solved"] and faster and better)
         parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}) at {it}: SDP {part(s)}" + (f"; DP {part(dp)}" if len(dp) else ""))
-    full = {16, 31, 63} <= set(sdp.t_a.astype(int)) and sdp.task.nunique() >= 2
-    verdict = "reproduced" if ok and all(ok) and full else "partly" if any(ok) else "not reproduced"
+    full = set(p["t_a"]) <= set(sdp.t_a.astype(int)) and sdp.task.nunique() >= len(p["tasks"])
+    verdict = all_any(ok, complete=full)
+    loops = tuple((task, h, t_a) for task in p["tasks"] for h, t_a in p["loops"])
     return Row(" | ".join(parts), verdict, "; ".join(
-        x for x in (_fig3_not_run(res["fig3"], res.get("estimates/fig3")), unfinished) if x))
-
-
-#: Fig. 3's loops: UR5(1, 0) and UR5(1, 1), each at five (T_h, T_a) pairs
-FIG3_LOOPS = tuple((task, h, t_a) for task in ("ur5-rinit", "ur5-rinit-rtgt")
-                   for h, t_a in ((32, 16), (32, 31), (64, 16), (64, 31), (64, 63)))
+        x for x in (_fig3_not_run(res["fig3"], loops, res.get("estimates/fig3")), todo) if x))
 
 
 def _sdp_loops(d: pd.DataFrame) -> set[tuple[str, int, int]]:
@@ -293,13 +296,14 @@ def _sdp_loops(d: pd.DataFrame) -> set[tuple[str, int, int]]:
     return set(zip(sdp.task, sdp.horizon.astype(int), sdp.t_a.astype(int)))
 
 
-def _fig3_not_run(d: pd.DataFrame, est: pd.DataFrame | None = None) -> str:
-    """``"SDP not run on ..."``: Fig. 3's loops without an SDP row, per task as ``(T_h, T_a)`` pairs; with
+def _fig3_not_run(d: pd.DataFrame, loops: tuple, est: pd.DataFrame | None = None) -> str:
+    """``"SDP not run on ..."``: Fig. 3's ``loops`` ``(task, T_h, T_a)`` without an SDP row, per task as
+    ``(T_h, T_a)`` pairs; with
     ``est`` (the saved ``sdp pipeline fig3 --estimate`` table), each with the estimated hours of its runs
     that have no row in ``d`` (SDP's and DP's where neither ran)."""
     ran = _sdp_loops(d)
     todo = {}
-    for task, h, t_a in FIG3_LOOPS:
+    for task, h, t_a in loops:
         if (task, h, t_a) not in ran:
             todo.setdefault(task, []).append(f"({h}, {t_a})" + _loop_hours(est, d, task, h, t_a))
     if not todo:
@@ -318,11 +322,7 @@ def _loop_hours(est: pd.DataFrame | None, d: pd.DataFrame, task: str, h: int, t_
     return f" {mine.total_cpu_h.sum():.1f} h" if len(mine) else ""
 
 
-#: claim id -> (experiments it needs, function)
-CLAIMS = {1: (("fig1|ablation_k",), sdp_reaches_to), 2: (("fig1",), dp_needs_more), 3: (("fig1",), pendulum_torque),
-          4: (("fig1",), mlp_unstable), 5: (("fig2",), fig2_only_sdp), 6: (("fig2",), fig2_to_alone),
-          7: (("fig2",), table2c), 8: (("fig3",), ur5_long_actions), 9: (("fig4",), quadrotor_precision),
-          10: (("fig4",), quadrotor9_times), 11: (("bench/train_step",), epoch_cost), 12: (("ablation_k",), k_steps),
-          13: (("fig2|fig3|fig4",), speedup)}
-
-
+#: every rule by the name results/claims.yaml gives it (``rule:``)
+RULES = {fn.__name__: fn for fn in (sdp_reaches_to, dp_needs_more, pendulum_torque, mlp_unstable, fig2_only_sdp,
+                                     fig2_to_alone, table2c, ur5_long_actions, quadrotor_precision, quadrotor9_times,
+                                     epoch_cost, k_steps, speedup)}

@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.runs import mean_ci
-from sdp_cli.report.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
+from sdp_cli.report.rows import loop_t_a, mean_ci
+from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
                                   pyplot, save_csv, save_fig, save_md)
 
 DIVERGED = 1e5
@@ -40,7 +40,7 @@ def _mark_reaching_zero(ax, x, mean, ci, color) -> None:
                         ha="center", va="bottom", fontsize=7, color=color)
 
 
-def fig1(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Fig. 1: the paper's quantity, the mean policy cost per dataset size (∞ where one diverged rollout
     made the mean infinite), and beside it the policy's success rate, which the mean hides then.
     One curve per (method, epochs), shifted a little along n_traj so that equal values stay visible."""
@@ -119,24 +119,14 @@ def budget_title(d: pd.DataFrame) -> str:
     return ", largest budget per method"
 
 
-def _loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
-    """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
-    keep = []  # (load_runs gives every row an integer iteration)
-    by = ["run"] if "run" in d else ["method", "train_seed"]   # (Fig. 3: one run per (T_h, T_a) and seed)
-    for _, g in d.groupby(by, dropna=False):
-        common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
-        keep.append(g[g.t_a.isin(common)])
-    return pd.concat(keep) if keep else d
-
-
-def fig2a(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Mean cost per loop iteration (policy; refined = TO warm-started by the policy, over its
     converged solves; ArgminCost(refined, TO alone), drawn dotted beside them since it is <= TO
     alone by construction; log scale, ∞ where the mean diverged) and the policy's success rate."""
     d = df[df.task == task]
     if d.empty:
         return []
-    d = _loop_t_a(d)
+    d = loop_t_a(d)
     rows = []
     for col, what in (("policy_cost_mean", "policy"), ("refined_cost_mean", "refined"),
                       ("argmin_cost_mean", "ArgminCost"), ("success_rate", "policy success rate")):
@@ -228,7 +218,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     d = df[df.task == task]
     if d.empty:
         return []
-    last = _loop_t_a(d)
+    last = loop_t_a(d)
     last = last[last.iteration == last.iteration.max()]
     rows = []
     for r in last.itertuples():
@@ -290,7 +280,7 @@ TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "poli
            "ss_to_alone_iterations_mean": "single shooting: TO alone iterations", "ss_to_alone_solve_time_mean": "single shooting: TO alone time (s)"}
 
 
-def table2c(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+def table2c(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     d = df[(df.task == task)].copy()
     if d.empty or "refined_solve_time_mean" not in d:
         return []

@@ -12,16 +12,16 @@ from pathlib import Path
 
 import pandas as pd
 
-from sdp_cli.report.figures import _agg, _loop_t_a
-from sdp_cli.report.runs import mean_ci
-from sdp_cli.report.style import COLORS, pyplot, save_csv, save_fig
+from sdp_cli.report.figures.paper import _agg
+from sdp_cli.report.rows import loop_t_a, mean_ci
+from sdp_cli.report.figures.style import COLORS, pyplot, save_csv, save_fig
 
 
-def ablation_k(df: pd.DataFrame, task: str, out: Path) -> list[Path]:
+def ablation_k(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     d = df[(df.task == task) & (df.iteration == 0)]
     if d.empty or "k_rollout" not in d or d.groupby("method").k_rollout.nunique().max() < 2:
         return []
-    d = _loop_t_a(d)
+    d = loop_t_a(d)
     tab = pd.concat([_agg(d, ["method", "epochs", "k_rollout"], col).assign(quantity=name)
                      for col, name in (("policy_cost_mean", "policy cost"), ("success_rate", "success rate"))])
     to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else float("nan")

@@ -1,42 +1,43 @@
-"""Fig. 1's claims (1-4): sample efficiency over n_traj on the pendulum, UR5(0, 0) and quadrotor-0."""
+"""Fig. 1's claims (1-4): sample efficiency over n_traj on the pendulum, UR5(0, 0) and quadrotor-0 (the tasks,
+thresholds and the paper's numbers: each claim's ``params`` in results/claims.yaml)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.verdicts import SOLVED, Row, _per_seed, combine, fmt, ratio_verdict
+from sdp_cli.report.ledger.verdicts import Row, all_any, combine, fmt, pct_text, ratio_verdict
+from sdp_cli.report.rows import per_seed
 
-def sdp_reaches_to(res) -> Row:
-    """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K=5)."""
+def sdp_reaches_to(res, p) -> Row:
+    """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K =
+    ``p["ablation_k"]``)."""
     if "fig1" in res:
         d = res["fig1"]
         d = d[(d.method == "sdp") & (d.epochs == d.groupby("task").epochs.transform("max"))]
         parts, ok = [], []
         for task, g in d.groupby("task"):
             to = g.to_alone_cost_mean.mean()
-            ok.append(np.isfinite(_first_n(g, to)))
-            parts.append(f"{task}: TO alone {to:.3g}, SDP within 10% " + _n_text(g, to))
-        return Row("; ".join(parts), "reproduced" if all(ok) and len(ok) >= 3 else "partly" if any(ok) else "not reproduced",
-                   _fig1_missing(res["fig1"], ("sdp",)))
+            ok.append(np.isfinite(_first_n(g, to, p["within"])))
+            parts.append(f"{task}: TO alone {to:.3g}, SDP within {pct_text(p['within'])} " + _n_text(g, to, p["within"]))
+        return Row("; ".join(parts), all_any(ok, complete=len(ok) >= len(p["tasks"])),
+                   _fig1_missing(res["fig1"], ("sdp",), p["tasks"]))
     d = res["ablation_k"]
-    g = d[(d.k_rollout == 5) & (d.epochs == d.epochs.max())]
+    k = p["ablation_k"]
+    g = d[(d.k_rollout == k) & (d.epochs == d.epochs.max())]
     to = g.to_alone_cost_mean.mean()
     m = g.policy_cost_mean.mean()
-    return Row(f"pendulum only (the K ablation's K=5 runs = fig1's pendulum SDP at n_traj 10): SDP "
-               f"{fmt(_per_seed(g, 'policy_cost_mean'))} vs TO alone {to:.3g}",
-               "partly" if m <= 1.1 * to else "not reproduced", "fig1 not run: one task of three, one n_traj")
+    return Row(f"pendulum only (the K ablation's K={k} runs = fig1's pendulum SDP at n_traj 10): SDP "
+               f"{fmt(per_seed(g, 'policy_cost_mean'))} vs TO alone {to:.3g}",
+               "partly" if m <= (1 + p["within"]) * to else "not reproduced", "fig1 not run: one task of three, one n_traj")
 
 
-#: Fig. 1's three tasks: a claim made over all of them is at most "partly" while one is missing
-FIG1_TASKS = ("pendulum", "ur5-fixed", "quadrotor-0")
-
-
-def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...]) -> str:
+def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...], tasks: list[str]) -> str:
     """``"fig1 not run on ur5-fixed (SDP), quadrotor-0 (SDP, DP)"``: Fig. 1's tasks where ``d`` lacks a run of
     one of ``methods``, each with the methods it lacks ("" when none); a task with only PDDP runs is no
-    evidence for a claim about SDP and DP."""
-    missing = {t: [m.upper() for m in methods if not ((d.task == t) & (d.method == m)).any()] for t in FIG1_TASKS}
+    evidence for a claim about SDP and DP. ``tasks``: Fig. 1's tasks (a claim over all of them is at most
+    "partly" while one is missing)."""
+    missing = {t: [m.upper() for m in methods if not ((d.task == t) & (d.method == m)).any()] for t in tasks}
     parts = [f"{t} ({', '.join(ms)})" for t, ms in missing.items() if ms]
     return f"fig1 not run on {', '.join(parts)}" if parts else ""
 
@@ -52,25 +53,25 @@ def _cost_by_n(g: pd.DataFrame) -> pd.Series:
     return g.groupby("n_traj").policy_cost_mean.mean().sort_index()
 
 
-def _first_n(g: pd.DataFrame, to: float) -> float:
-    """Smallest n_traj from which the mean policy cost over seeds stays within 10% of TO alone, at it and at
+def _first_n(g: pd.DataFrame, to: float, within: float) -> float:
+    """Smallest n_traj from which the mean policy cost over seeds stays ``within`` of TO alone, at it and at
     every larger n_traj run (inf: none). "Needs n trajectories" means n and more suffice: a small dataset that
     is within 10% by chance while larger ones are not does not count (see :func:`_first_within`)."""
     by = _cost_by_n(g)
-    ok = (by <= 1.1 * to)[::-1].cummin()[::-1]     # within at n and at every larger n
+    ok = (by <= (1 + within) * to)[::-1].cummin()[::-1]     # within at n and at every larger n
     return float(ok[ok].index.min()) if ok.any() else float("inf")
 
 
-def _first_within(g: pd.DataFrame, to: float) -> float:
-    """Smallest n_traj whose mean policy cost over seeds is within 10% of TO alone (inf: none)."""
+def _first_within(g: pd.DataFrame, to: float, within: float) -> float:
+    """Smallest n_traj whose mean policy cost over seeds is ``within`` of TO alone (inf: none)."""
     by = _cost_by_n(g)
-    ok = by[by <= 1.1 * to]
+    ok = by[by <= (1 + within) * to]
     return float(ok.index.min()) if len(ok) else float("inf")
 
 
-def _n_text(g: pd.DataFrame, to: float) -> str:
-    """``"from n_traj N"`` / ``"never"``, with the first n_traj within 10% where it differs."""
-    n, first = _first_n(g, to), _first_within(g, to)
+def _n_text(g: pd.DataFrame, to: float, within: float) -> str:
+    """``"from n_traj N"`` / ``"never"``, with the first n_traj within where it differs."""
+    n, first = _first_n(g, to, within), _first_within(g, to, within)
     if not np.isfinite(n):
         return "never " + _never_text(g, first)
     return f"from n_traj {n:g}" + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
@@ -86,51 +87,53 @@ def _never_text(g: pd.DataFrame, first: float = float("inf")) -> str:
     return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g}{again})"
 
 
-def dp_needs_more(res) -> Row:
-    """Claim 2: per task, the n_traj from which DP's mean cost stays within 10% of TO alone over SDP's."""
+def dp_needs_more(res, p) -> Row:
+    """Claim 2: per task, the n_traj from which DP's mean cost stays within ``p["within"]`` of TO alone over SDP's."""
+    w = p["within"]
     d = _fig1_final(res)
     parts, verdicts = [], []
     for task, g in d.groupby("task"):
         to = g.to_alone_cost_mean.mean()
-        n = {m: _first_n(g[g.method == m], to) for m in ("sdp", "dp") if (g.method == m).any()}
+        n = {m: _first_n(g[g.method == m], to, w) for m in ("sdp", "dp") if (g.method == m).any()}
         if len(n) < 2:
             continue
         if not np.isfinite(n["sdp"]):
-            parts.append(f"{task}: SDP never within 10% of TO alone {_never_text(g[g.method == 'sdp'])}")
+            parts.append(f"{task}: SDP never within {pct_text(w)} of TO alone {_never_text(g[g.method == 'sdp'])}")
             verdicts.append("not reproduced")
             continue
         r = n["dp"] / n["sdp"] if np.isfinite(n["dp"]) else g.n_traj.max() / n["sdp"]
         bound = "" if np.isfinite(n["dp"]) else "> "
-        parts.append(f"{task}: SDP {_n_text(g[g.method == 'sdp'], to)}, DP {_n_text(g[g.method == 'dp'], to)}"
+        parts.append(f"{task}: SDP {_n_text(g[g.method == 'sdp'], to, w)}, DP {_n_text(g[g.method == 'dp'], to, w)}"
                      f" ({bound}{r:.2g}x)")
-        verdicts.append(ratio_verdict(r, 5.0) if not bound or r >= 3 else "partly")
+        verdicts.append(ratio_verdict(r, p["ratio"], p["keep"], p["partly"]) if not bound or r >= p["lower_bound_min"] else "partly")
     if not verdicts:
         return Row("", "not run", "fig1 has no task with both SDP and DP")
-    missing = _fig1_missing(d, ("sdp", "dp"))
+    missing = _fig1_missing(d, ("sdp", "dp"), p["tasks"])
     verdict = combine(verdicts)
     verdict = "partly" if missing and verdict == "reproduced" else verdict   # a claim over Fig. 1's tasks
     return Row("; ".join(parts), verdict, "; ".join(x for x in (
-        "n_traj: the smallest dataset from which the mean cost over seeds stays within 10% of TO alone (at it and "
+        f"n_traj: the smallest dataset from which the mean cost over seeds stays within {pct_text(w)} of TO alone (at it and "
         "every larger one); DP never: the ratio is a lower bound", missing) if x))
 
 
-def pendulum_torque(res) -> Row:
-    """Claim 3: the pendulum, SDP's success at n_traj 3 and DP's best success over n_traj."""
+def pendulum_torque(res, p) -> Row:
+    """Claim 3: the pendulum, SDP's success at n_traj ``p["n_traj"]`` and DP's best success over n_traj."""
     d = _fig1_final(res)
-    p = d[d.task == "pendulum"]
-    sdp, dp = p[(p.method == "sdp") & (p.n_traj == 3)], p[p.method == "dp"]
+    n3, solved = p["n_traj"], p["solved"]
+    pend = d[d.task == p["task"]]
+    sdp, dp = pend[(pend.method == "sdp") & (pend.n_traj == n3)], pend[pend.method == "dp"]
     if sdp.empty or dp.empty:
-        return Row("", "not run", "pendulum SDP at n_traj 3 or DP not run")
-    s3 = _per_seed(sdp, "success_rate")
+        return Row("", "not run", f"pendulum SDP at n_traj {n3} or DP not run")
+    s3 = per_seed(sdp, "success_rate")
     dp_best = dp.groupby("n_traj").success_rate.mean()
-    ok = [s3.mean() >= SOLVED, dp_best.max() < SOLVED]
-    return Row(f"SDP at n_traj 3: success {fmt(s3, pct=True)}, cost {fmt(_per_seed(sdp, 'policy_cost_mean'))} "
-               f"(TO alone {p.to_alone_cost_mean.mean():.3g}); DP's best success over n_traj "
+    ok = [s3.mean() >= solved, dp_best.max() < solved]
+    return Row(f"SDP at n_traj {n3}: success {fmt(s3, pct=True)}, cost {fmt(per_seed(sdp, 'policy_cost_mean'))} "
+               f"(TO alone {pend.to_alone_cost_mean.mean():.3g}); DP's best success over n_traj "
                f"{100 * dp_best.max():.0f}% (n_traj {dp_best.idxmax():g})",
-               "reproduced" if all(ok) else "partly" if any(ok) else "not reproduced")
+               all_any(ok))
 
 
-def mlp_unstable(res) -> Row:
+def mlp_unstable(res, p) -> Row:
     """Claim 4: per task, the share of evaluations (n_traj, seed, epochs) with a diverged rollout, per method;
     PDDP+S on UR5(0, 0) at 2e3 epochs: the n_traj at which it solves the task. The MLPs are unstable on a
     task where both diverge in >= 25% of their evaluations there, more often than the diffusion policies."""
@@ -144,18 +147,19 @@ def mlp_unstable(res) -> Row:
         mlp = [share[m] for m in ("pddp", "pddp_s") if m in share]
         diff = [share[m] for m in ("sdp", "dp") if m in share]
         if mlp:
-            unstable[t] = min(mlp) >= 0.25 and (not diff or min(mlp) > max(diff))
+            unstable[t] = min(mlp) >= p["diverged_share"] and (not diff or min(mlp) > max(diff))
     parts = ["evaluations with a diverged rollout: " + "; ".join(per_task)]
     if unstable:
         parts.append("unstable on " + (", ".join(t for t, u in unstable.items() if u) or "no task"))
-    u = d[(d.task == "ur5-fixed") & (d.method == "pddp_s") & (d.epochs == 2000)]
+    win = p["window"]
+    u = d[(d.task == win["task"]) & (d.method == "pddp_s") & (d.epochs == win["epochs"])]
     window = None
     if not u.empty:
         by = u.groupby("n_traj").success_rate.mean()
-        solved = sorted(float(n) for n in by[by >= SOLVED].index)
-        window = bool(solved) and min(solved) >= 8 and max(solved) <= 16
+        solved = sorted(float(n) for n in by[by >= p["solved"]].index)
+        window = bool(solved) and min(solved) >= win["n_traj"][0] and max(solved) <= win["n_traj"][1]
         parts.append("PDDP+S on UR5(0, 0) at 2e3 epochs solves at n_traj " + (", ".join(f"{n:g}" for n in solved) or "none"))
     ok = list(unstable.values()) + ([window] if window is not None else [])
-    return Row("; ".join(parts), "reproduced" if all(ok) and window is not None else "partly" if any(ok)
-               else "not reproduced", "rule: unstable on a task = PDDP and PDDP+S each have a diverged rollout in >= "
-                                      "25% of their evaluations on it, more often than the diffusion policies")
+    return Row("; ".join(parts), all_any(ok, complete=window is not None),
+               "rule: unstable on a task = PDDP and PDDP+S each have a diverged rollout in >= "
+               f"{pct_text(p['diverged_share'])} of their evaluations on it, more often than the diffusion policies")

@@ -1,0 +1,122 @@
+"""Which evaluation rows a figure or a claim reads: the one place where rows are selected.
+
+Rows are ``all_runs.csv``'s (:func:`sdp_cli.report.runs.load_runs`): one per run, iteration, T_a and
+evaluated checkpoint. The figures draw a method's *variants* apart (:func:`method_variants`) and most of them
+one budget per method (:func:`largest_budget`); loops are read at the T_a evaluated at every iteration
+(:func:`loop_t_a`); the ledger reads a loop's final iteration (:func:`last_iteration`), names the runs that
+have not reached it (:func:`unfinished`) and averages per seed (:func:`per_seed`, :func:`mean_ci`).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pandas as pd
+
+
+def mean_ci(values: pd.Series) -> tuple[float, float, int]:
+    """Mean and 95% confidence half-width (normal approximation over seeds) of finite values;
+    the mean is +inf if any value is infinite (a diverged seed); the half-width is NaN (no
+    interval) with fewer than two seeds."""
+    v = np.asarray(values, dtype=float)
+    if np.any(np.isinf(v)):
+        return float("inf"), float("nan"), len(v)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan"), float("nan"), 0
+    half = 1.96 * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else float("nan")
+    return float(v.mean()), float(half), int(v.size)
+
+
+def per_seed(d: pd.DataFrame, col: str) -> pd.Series:
+    """``col`` averaged per training seed (the unit every interval is over)."""
+    return d.groupby("train_seed")[col].mean()
+
+
+def first_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """Each run's rows at its first evaluated iteration (where its loop T_a and first dataset are read)."""
+    return df[df.iteration == df.groupby("run").iteration.transform("min")]
+
+
+def loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
+    """Rows at the T_a evaluated at every iteration of a run (the last one adds Table 2c's sweep)."""
+    keep = []  # (load_runs gives every row an integer iteration)
+    by = ["run"] if "run" in d else ["method", "train_seed"]   # (Fig. 3: one run per (T_h, T_a) and seed)
+    for _, g in d.groupby(by, dropna=False):
+        common = set.intersection(*(set(x.t_a) for _, x in g.groupby("iteration")))
+        keep.append(g[g.t_a.isin(common)])
+    return pd.concat(keep) if keep else d
+
+
+def method_variants(df: pd.DataFrame) -> pd.DataFrame:
+    """For the figures: where one task has runs of a method that differ in how the policy acts, the
+    variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
+    method): several diffusion step counts (the K ablation) make ``<method>-K<k>``; several (T_h, T_a)
+    pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
+    ``<method>-h<T_h>-ta<T_a>``."""
+    if df.empty:
+        return df
+    df = df.copy()
+    if "k_rollout" in df:
+        ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
+        mixed = (ks > 1) & df.k_rollout.notna()
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
+    if {"horizon", "t_a", "run", "iteration"} <= set(df.columns):
+        run_t_a = df.run.map(first_rows(df).groupby("run").t_a.min())
+        pair = df.horizon.astype("Int64").astype(str) + "-ta" + run_t_a.astype("Int64").astype(str)
+        mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
+    return df
+
+
+def plain_method(method: str) -> str:
+    """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
+    :func:`method_variants`)."""
+    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", method)
+
+
+def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
+    """The rows behind ``fig2a``, ``fig2b``, ``table2c``, ``traj`` and ``loop/``: per task and method, the rows
+    at the most epochs (a run evaluated at several epoch counts has a row per count) of the runs with the
+    largest first dataset (n_traj at the run's first iteration). Fig. 1's sweeps would otherwise be averaged
+    into one point per iteration whose "seeds" are runs of different budgets; the loops of one budget (Fig. 2-4)
+    keep every row. ``fig1`` shows all budgets."""
+    if df.empty or not {"run", "iteration", "epochs", "n_traj"} <= set(df.columns):
+        return df
+    by = [df.task, df.method]
+    keep = (df.epochs == df.epochs.groupby(by).transform("max")) | df.epochs.isna()
+    first = first_rows(df).groupby("run").n_traj.max()
+    n_traj = df.run.map(first).where(keep)
+    keep &= (n_traj == n_traj.groupby(by).transform("max")) | df.run.map(first).isna()
+    return df[keep]
+
+
+def final_iteration(d: pd.DataFrame) -> pd.Series:
+    """Per task, its loops' final iteration: the last one its runs' ``n_algo`` asks for where the rows
+    record it (a loop's rows do; older ones get it from the run's ``loop_config.json``), else the last
+    one any of its runs reached."""
+    reached = d.groupby("task").iteration.max()
+    if "n_algo" not in d:
+        return reached
+    asked = (d.groupby("task").n_algo.max() - 1).reindex(reached.index)
+    return pd.concat([reached, asked], axis=1).max(axis=1)
+
+
+def last_iteration(d: pd.DataFrame) -> pd.DataFrame:
+    """The final loop iteration at the loop's T_a, of the runs that reached it (one row per task, method
+    and seed); a task's final iteration is :func:`final_iteration`'s."""
+    if not len(d):
+        return d
+    d = pd.concat([loop_t_a(g) for _, g in d.groupby("task")])
+    return d[d.iteration == d.task.map(final_iteration(d))]
+
+
+def unfinished(d: pd.DataFrame) -> str:
+    """``"runs not finished (left out): ..."`` for runs that have not reached their task's final iteration."""
+    if not len(d):
+        return ""
+    last = d.groupby(["task", "run"]).iteration.max()
+    final = final_iteration(d)
+    todo = sorted(run for (task, run), it in last.items() if it < final[task])
+    return f"runs not finished (left out): {', '.join(todo)}" if todo else ""
