@@ -440,3 +440,38 @@ def test_a_new_figure_is_one_registry_entry(tmp_path, monkeypatch):
     monkeypatch.setattr(figures, "FIGURES", extra[:-1])
     make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
     assert not (out / "toy_pendulum.csv").exists()        # stale: the registry no longer has it
+
+
+def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_path):
+    """A task evaluated with the multiple-shooting TO and with the DDP (`sdp loop --to ddp`): the methods are
+    drawn per family (`sdp-to-ddp`), each family's TO alone is its own line and table row; a task with one
+    family keeps the plain names (the committed reports are unchanged)."""
+    import pandas as pd
+
+    from sdp_cli.report.figures.paper import fig2a, table2c
+    from sdp_cli.report.figures.style import COLORS, method_label
+    from sdp_cli.report.rows import family_of, method_variants, plain_method
+
+    rows = []
+    for to, alone in (("ms", 31.5), ("ddp", 45.2)):
+        for m, cost in (("sdp", 40.0), ("dp", 60.0)):
+            for seed in (0, 1):
+                rows.append({"task": "double_pendulum", "method": m, "to": to, "run": f"{m}-{to}-s{seed}",
+                             "iteration": 0, "t_a": 4, "train_seed": seed, "epochs": 10, "n_traj": 30,
+                             "policy_cost_mean": cost + seed, "refined_cost_mean": alone - 5, "success_rate": 0.5,
+                             "to_alone_cost_mean": alone, "refined_solve_time_mean": 0.1,
+                             "rollout_time_per_instance": 0.01})
+    rows.append({**rows[0], "task": "pendulum", "to": None, "run": "p"})     # older row: no family recorded
+    d = method_variants(pd.DataFrame(rows))
+    dp2 = d[d.task == "double_pendulum"]
+    assert set(dp2.method) == {"sdp-to-ms", "sdp-to-ddp", "dp-to-ms", "dp-to-ddp"}
+    assert set(d[d.task == "pendulum"].method) == {"sdp"}
+    assert family_of("sdp-to-ddp") == "ddp" and family_of("sdp") == "ms" and plain_method("dp-K5-to-ddp") == "dp"
+    assert method_label("sdp-to-ddp") == "SDP (TO ddp)" and COLORS.get("sdp-to-ddp") != COLORS.get("sdp-to-ms")
+    fig2a(dp2, "double_pendulum", tmp_path)
+    tab = pd.read_csv(tmp_path / "fig2a_double_pendulum.csv")
+    alone = tab[tab.curve == "TO alone"].set_index("method")["mean"].to_dict()
+    assert alone == {"to-ms": 31.5, "to-ddp": 45.2}
+    table2c(dp2, "double_pendulum", tmp_path)
+    t = pd.read_csv(tmp_path / "table2c_double_pendulum.csv").set_index("method")
+    assert t.loc["sdp-to-ddp", "TO alone cost"] == 45.2 and t.loc["sdp-to-ms", "TO alone cost"] == 31.5

@@ -54,7 +54,9 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
     variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
     method): several diffusion step counts (the K ablation) make ``<method>-K<k>``; several (T_h, T_a)
     pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
-    ``<method>-h<T_h>-ta<T_a>``."""
+    ``<method>-h<T_h>-ta<T_a>``; several TO families (``to``: collection, refinement and TO alone by ``ms`` or
+    ``ddp``) make ``<method>-to-<family>``, so that TO alone and refined are drawn per family (rows evaluated
+    before the column existed are ``ms``)."""
     if df.empty:
         return df
     df = df.copy()
@@ -67,13 +69,23 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         pair = df.horizon.astype("Int64").astype(str) + "-ta" + run_t_a.astype("Int64").astype(str)
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
+    if "to" in df:
+        fam = df["to"].fillna("ms").astype(str)
+        mixed = fam.groupby(df.task).transform("nunique") > 1
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-to-" + fam[mixed]
     return df
+
+
+def family_of(method: str) -> str:
+    """The TO family of a drawn variant (``sdp-to-ddp`` -> ``ddp``; no suffix: ``ms``)."""
+    m = re.search(r"-to-(\w+)$", str(method))
+    return m[1] if m else "ms"
 
 
 def plain_method(method: str) -> str:
     """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
     :func:`method_variants`)."""
-    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", method)
+    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?(-to-\w+)?$", "", method)
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:

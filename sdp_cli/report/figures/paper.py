@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.rows import loop_t_a, mean_ci
+from sdp_cli.report.rows import family_of, loop_t_a, mean_ci
 from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
                                   pyplot, save_csv, save_fig, save_md)
 
@@ -139,12 +139,22 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     costs = tab[tab.curve != "policy success rate"]
     finite = costs["mean"][np.isfinite(costs["mean"]) & (costs["mean"] < DIVERGED)]
-    to = mean_ci(d["to_alone_cost_mean"])[0] if "to_alone_cost_mean" in d else np.nan
-    lo = min(float(finite.min()) if len(finite) else 1.0, to if np.isfinite(to) else np.inf) / _bottom_room(costs)
-    top = max(float(finite.max()) if len(finite) else 1.0, to if np.isfinite(to) else 0) * 3
-    methods = sorted(tab.method.unique(), key=method_order)
+    to_by = _to_alone_by_family(d)
+    if len(to_by) > 1:      # TO families drawn apart: their TO alone in the table too
+        tab = pd.concat([tab, pd.DataFrame([{"method": f"to-{f}", "iteration": np.nan, "mean": v, "ci95": np.nan,
+                                             "n_seeds": np.nan, "curve": "TO alone"} for f, v in to_by.items()])],
+                        ignore_index=True)
+        costs = tab[~tab.curve.isin(["policy success rate", "TO alone"])]
+        tab_curves = tab[tab.curve != "TO alone"]
+    else:
+        tab_curves = tab
+    tos = [v for v in to_by.values() if np.isfinite(v)]
+    to = tos[0] if len(to_by) == 1 and tos else np.nan
+    lo = min(float(finite.min()) if len(finite) else 1.0, min(tos, default=np.inf)) / _bottom_room(costs)
+    top = max(float(finite.max()) if len(finite) else 1.0, max(tos, default=0)) * 3
+    methods = sorted(tab_curves.method.unique(), key=method_order)
     ax.set_yscale("log")
-    for (method, curve), g in tab.groupby(["method", "curve"]):
+    for (method, curve), g in tab_curves.groupby(["method", "curve"]):
         g = g.sort_values("iteration")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         a = ax2 if curve == "policy success rate" else ax
@@ -162,6 +172,10 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                             color=COLORS.get(method, among=methods))
     if np.isfinite(to):
         ax.axhline(to, color="black", ls="-.", lw=1)
+    family_lines = {f: ("black" if f == "ms" else "0.55") for f in to_by} if len(to_by) > 1 else {}
+    for f, v in to_by.items():
+        if family_lines and np.isfinite(v):
+            ax.axhline(v, color=family_lines[f], ls="-.", lw=1)
     # legends from explicit handles: colour and marker = method, line style = curve
     from matplotlib.lines import Line2D
 
@@ -174,7 +188,9 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                  for c in CURVE_STYLES if c in set(costs.curve)]
     if np.isfinite(to):
         c_handles.append(Line2D([], [], color="black", ls="-.", lw=1, label="TO alone (naive guess)"))
-    iters = sorted(int(i) for i in tab.iteration.unique())
+    c_handles += [Line2D([], [], color=c, ls="-.", lw=1, label=f"TO alone (naive guess, {f})")
+                  for f, c in family_lines.items()]
+    iters = sorted(int(i) for i in tab_curves.iteration.unique())
     for a in (ax, ax2):
         a.set_xticks(iters)
         a.set_xlabel("algorithm iteration")
@@ -193,6 +209,14 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                title_fontsize=7)
     fig.tight_layout()
     return [save_csv(tab, out / f"fig2a_{task}.csv"), save_fig(fig, out / f"fig2a_{task}.png")]
+
+
+def _to_alone_by_family(d: pd.DataFrame) -> dict[str, float]:
+    """Mean TO-alone cost per TO family of the drawn methods (one entry: the usual single line)."""
+    if "to_alone_cost_mean" not in d:
+        return {}
+    fam = d.method.map(family_of)
+    return {f: mean_ci(g["to_alone_cost_mean"])[0] for f, g in d.groupby(fam)}
 
 
 def _named(path) -> Path | None:
@@ -246,9 +270,13 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
     for ax, solver in zip(axes[0], solvers):
         t = tab[tab.solver == solver]
-        base = _to_alone_once(t)
-        ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
-                color="0.85", edgecolor="0.4", lw=1.2, label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
+        fams = sorted(set(t.method.map(family_of)))
+        for f in fams:   # TO alone once per TO family (its runs' methods carry the family when several)
+            base = _to_alone_once(t[t.method.map(family_of) == f])
+            what = f"TO alone (naive guess{', ' + f if len(fams) > 1 else ''}, {len(base)} instances)"
+            ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
+                    color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
+                    label=f"{what}, mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
         for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
             ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,

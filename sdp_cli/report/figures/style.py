@@ -31,6 +31,14 @@ class _Shades(dict):
     def get(self, key, default=None, among=()):
         if key in self:
             return self[key]
+        m = re.fullmatch(r"(.+)-to-(\w+)", str(key))
+        if m:    # a TO-family variant: its method's, lighter for a family other than ours (ms)
+            value = self.get(m[1], default, among=[re.sub(r"-to-\w+$", "", str(a)) for a in among])
+            if not self.shade or value is None or m[2] == "ms":
+                return value
+            import matplotlib.colors as mc
+
+            return tuple(c + (1 - c) * 0.45 for c in mc.to_rgb(value))
         base, _, variant = str(key).partition("-")
         k, pair = re.fullmatch(r"K(\d+)", variant), _pair(key)
         if base not in self or not (k or pair):
@@ -57,7 +65,10 @@ class _Shades(dict):
 
 
 def method_label(method: str) -> str:
-    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``."""
+    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO ddp)``."""
+    m = re.fullmatch(r"(.+)-to-(\w+)", str(method))
+    if m:
+        return f"{method_label(m[1])} (TO {m[2]})"
     pair = _pair(method)
     if pair:
         return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
