@@ -1,0 +1,122 @@
+"""Run-steps per second of R U-Nets stacked in one module (sdp_cli.policy.stacked_unet) against R solo networks,
+measured side by side in one run (issue "Many runs at once").
+
+    python bench/stacked_train.py [--stacks 1,5,10,25] [--batches 16,64] [--shapes ur5,quadrotor,double_pendulum]
+                                  [--rounds 5] [--threads 1] [--device cpu]
+
+A *network step* of one run: the loss (DP: eq. (2)'s regression of the denoised chunk; SDP: the same plus the
+jvp-mode Sobolev term, the network's hand-written tangent propagation along one random state direction),
+backward, gradient clipping, AdamW and an EMA update, on synthetic normalized batches of the given shape
+(A actions, n_cond condition, T_h 32 or 16, the paper's U-Net [24, 24, 32, 32]). Solo: R separate networks
+stepped one after the other (what R runs in one process cost today); stacked: one StackedUnet1D of R members
+and one optimizer over it. Both are timed round-robin; the median per configuration is printed with the ratio
+(stacked run-steps/s over solo run-steps/s). The stacked step here clips and schedules all members alike; the
+per-member clipping, schedules and random streams of a stacked trainer add a few small ops per step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from sdp_cli.policy.stacked_unet import StackedUnet1D
+from sdp_cli.policy.unet import ConditionalUnet1D
+
+#: (A, n_cond, T_h): fig1's UR5 (12 joint positions; xi 6 + o 24), quadrotor (4 rotor thrusts; xi 3 + o 17),
+#: fig2's double pendulum (2 torques; xi 2 + o 6, T_h 16)
+SHAPES = {"ur5": (12, 30, 32), "quadrotor": (4, 20, 32), "double_pendulum": (2, 8, 16)}
+ARCH = dict(down_dims=(24, 24, 32, 32), kernel_size=5, n_groups=8, step_embed_dim=64)
+
+
+def ema_step(shadow, params, decay=0.999):
+    d = torch._foreach_sub(shadow, params)
+    torch._foreach_mul_(d, 1 - decay)
+    torch._foreach_sub_(shadow, d)
+
+
+def make_step(net, opt, shadow, sobolev: bool, batch):
+    params = list(net.parameters())
+
+    def step():
+        tau, k, cond, target, tau_d, cond_d, jt = batch
+        if sobolev:
+            y, yd = net.forward_jvp(tau, tau_d, k, cond, cond_d)
+            loss = ((y - target) ** 2).mean() + ((yd - jt) ** 2).mean()
+        else:
+            loss = ((net(tau, k, cond) - target) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        with torch.no_grad():
+            ema_step(shadow, params)
+        loss.item()
+    return step
+
+
+def batches(R, B, A, nc, T, stacked: bool, device):
+    g = torch.Generator().manual_seed(0)
+    r = lambda *s: torch.randn(*s, generator=g).to(device)   # noqa: E731
+    tau, target, jt = r(B, R, T, A), r(B, R, T, A), r(B, R, T, A)
+    cond, cond_d, tau_d = r(B, R, nc), r(B, R, nc), r(B, R, T, A)
+    k = torch.randint(0, 5, (B, R), generator=g).to(device)
+    if stacked:
+        return [(tau, k, cond, target, tau_d, cond_d, jt)]
+    return [tuple(t[:, i] for t in (tau, k, cond, target, tau_d, cond_d, jt)) for i in range(R)]
+
+
+def setup(R, B, shape, sobolev, stacked, device):
+    A, nc, T = SHAPES[shape]
+    torch.manual_seed(0)
+    nets = [ConditionalUnet1D(A, nc, **ARCH) for _ in range(R)]
+    if stacked:
+        nets = [StackedUnet1D.from_members(nets, action_dim=A, cond_dim=nc, **ARCH)]
+    nets = [n.to(device) for n in nets]
+    steps = []
+    for net, b in zip(nets, batches(R, B, A, nc, T, stacked, device)):
+        opt = torch.optim.AdamW(net.parameters(), lr=1e-4, foreach=True)
+        shadow = [p.detach().clone() for p in net.parameters()]
+        steps.append(make_step(net, opt, shadow, sobolev, b))
+    return lambda: [s() for s in steps]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--stacks", default="1,5,10,25")
+    ap.add_argument("--batches", default="16,64")
+    ap.add_argument("--shapes", default="ur5,quadrotor,double_pendulum")
+    ap.add_argument("--modes", default="dp,sdp")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    dev = torch.device(a.device)
+    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    print(f"torch {torch.__version__}, {a.threads} thread(s), device {dev}; {time.strftime('%Y-%m-%d %H:%M')}")
+    print("| shape | mode | B | R | solo run-steps/s | stacked run-steps/s | stacked / solo |")
+    print("|---|---|---|---|---|---|---|")
+    for shape in a.shapes.split(","):
+        for mode in a.modes.split(","):
+            for B in (int(b) for b in a.batches.split(",")):
+                for R in (int(r) for r in a.stacks.split(",")):
+                    fns = {s: setup(R, B, shape, mode == "sdp", s, dev) for s in (False, True)}
+                    for f in fns.values():      # warm-up
+                        f()
+                    sync()
+                    times = {s: [] for s in fns}
+                    for _ in range(a.rounds):
+                        for s, f in fns.items():
+                            t0 = time.perf_counter()
+                            f()
+                            sync()
+                            times[s].append(time.perf_counter() - t0)
+                    solo, st = (R / statistics.median(times[s]) for s in (False, True))
+                    print(f"| {shape} | {mode} | {B} | {R} | {solo:.1f} | {st:.1f} | {st / solo:.2f}x |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
