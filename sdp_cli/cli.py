@@ -289,6 +289,7 @@ def pipeline_cmd(
     workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
     executor: Annotated[Optional[str], typer.Option(help="--run: local (process pool; default $SDP_EXECUTOR, else local) or dask.")] = None,
     scheduler: Annotated[Optional[str], typer.Option(help="--run: address of a running Dask scheduler (default $SDP_SCHEDULER).")] = None,
+    stack: Annotated[Optional[int], typer.Option(help="--run, --estimate: runs trained together as one stacked network (compatible one-iteration runs, e.g. fig1's; default 8, fixed so that a seed gives the same bytes on any machine; 1: every run alone).")] = None,
 ) -> None:
     """Select the experiment that `dvc repro` runs (pipelines/<name>.yaml, written into params.yaml), or run it (--run)."""
     from sdp_cli.pipeline import select_experiment
@@ -307,7 +308,7 @@ def pipeline_cmd(
     if estimate:
         from sdp_cli.estimate import estimate as run_estimate, format_estimate
 
-        df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True))
+        df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True), stack=stack)
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
@@ -321,7 +322,7 @@ def pipeline_cmd(
         names = [s for s in (only or "").split(",") if s] or None
         summary = run_group(experiment, out or Path("runs") / experiment, executor=executor, workers=workers,
                             scheduler=scheduler, only=names, restart_changed=restart_changed,
-                            log=lambda s: typer.echo(s, err=True))
+                            log=lambda s: typer.echo(s, err=True), stack=stack)
         cols = [c for c in ("run", "iteration", "epochs", "t_a", "policy_cost_mean", "success_rate",
                             "refined_cost_mean", "to_alone_cost_mean") if c in summary]
         typer.echo(summary[cols].to_string(index=False) if len(summary) else "no runs")

@@ -146,14 +146,60 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
     return out
 
 
+def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
+                         device="cpu", max_s: float = 5.0) -> float:
+    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_stack.Stack`, the
+    trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
+    synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up)."""
+    from types import SimpleNamespace
+
+    from diffusers.training_utils import EMAModel
+
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.policy.registry import make_policy
+    from sdp_cli.tasks import get_task
+    from sdp_cli.train_stack import Stack
+
+    task = get_task(task_name)
+    cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
+    dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
+    runs = []
+    for r in range(R):
+        torch.manual_seed(r)
+        pol = make_policy(cfg, dims).to(device)
+        opt = torch.optim.AdamW(pol.parameters(), lr=cfg.optim.lr, foreach=True)
+        gen = torch.Generator().manual_seed(r)
+        batch = _synthetic_batch(method, dims, T_h, B, gen, device)
+        runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, device=torch.device(device),
+                                    sched=torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0),
+                                    ema=EMAModel(pol.parameters(), decay=cfg.optim.ema_max_decay, use_ema_warmup=True,
+                                                 power=cfg.optim.ema_power),
+                                    next_batch=(lambda b=batch: b)))
+    stack = Stack(runs)
+
+    def step():
+        for loss, _, _ in stack.step():
+            loss.detach().item()
+
+    step()
+    times, t_start = [], time.perf_counter()
+    while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 def _interp(cal: tuple, B: int) -> float:
     lo, t_lo, hi, t_hi = cal
     return t_lo if hi == lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
 
 
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
-             root: Path = Path(".")) -> tuple[pd.DataFrame, dict]:
-    """Per-run estimate of experiment ``name`` and the totals (see the module docstring)."""
+             root: Path = Path("."), stack: int | None = None) -> tuple[pd.DataFrame, dict]:
+    """Per-run estimate of experiment ``name`` and the totals (see the module docstring). Runs that
+    ``sdp pipeline --run`` trains as one stack (``stack`` runs at most, :func:`sdp_cli.runner.pack`) share
+    the measured time of a stacked step (:func:`stacked_step_seconds`) instead of one step each."""
     from sdp_cli.experiment import load_experiment
     from sdp_cli.pipeline import loop_configs
     from sdp_cli.tasks import get_task
@@ -181,6 +227,21 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
         r["samples"] += st.epochs * st.E
         for d in devices:
             r[f"train_{d}_s"] += st.steps * _interp(cals[d][(st.task, st.method, st.T_h, st.action)], st.B)
+    from sdp_cli.runner import pack
+    from sdp_cli.train_stack import DEFAULT_STACK
+
+    stacked: dict = {}
+    for job in (j for j in pack(runs, DEFAULT_STACK if stack is None else stack) if len(j) > 1):
+        sts = [next(s for s in train if s.run == run) for run in job]
+        key = (sts[0].task, sts[0].method, sts[0].T_h, sts[0].action, len(job), max(s.B for s in sts))
+        if key not in stacked:
+            stacked[key] = stacked_step_seconds(*key[:3], key[5], key[4], key[3], "cpu", 3.0)
+            log(f"calibrated a stack of {key[4]} {key[1]} runs on {key[0]} (T_h {key[2]}, B={key[5]}): "
+                f"{stacked[key] * 1e3:.1f} ms a step")
+        longest = max(s.steps for s in sts)
+        for run in job:   # the stack runs as long as its longest member; each member bears an equal share
+            rows[run]["stack"] = len(job)
+            rows[run]["train_cpu_s"] = longest * stacked[key] / len(job)   # (GPU columns: solo steps, not stacked)
     for run, cfg in runs.items():
         r, task = rows[run], get_task(cfg.task)
         ms, ss = to_reference(cfg.task)
@@ -200,6 +261,8 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
                 calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).chunked else task.T
                 r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))
+    if "stack" in df:
+        df["stack"] = df["stack"].fillna(1).astype(int)
     for d in devices:
         df[f"total_{d}_s"] = df[f"train_{d}_s"] + df["to_s"] + df["rollout_s"]
     totals = {}

@@ -4,9 +4,10 @@ A signal that lands in the middle of a training step leaves the random generator
 optimizer half-way through it, so a checkpoint written there does not resume bit-for-bit. Inside
 :func:`deferred`, SIGINT and SIGTERM only set a flag; the training loop checks it between steps
 (:meth:`Deferred.check`), writes its checkpoint at that step boundary and raises ``KeyboardInterrupt``,
-which the CLI turns into "Interrupted." and exit code 130. The same signal again while one is pending
-interrupts at once (Ctrl-C twice: an impatient user is never ignored); another signal does not (a pool
-worker gets the terminal's SIGINT and then its parent's SIGTERM, and must still stop at a boundary).
+which the CLI turns into "Interrupted." and exit code 130. Ctrl-C again while one is pending interrupts at
+once (an impatient user is never ignored); any other signal does not: a pool worker gets the terminal's SIGINT
+and then its parent's SIGTERM, and a second SIGTERM when the pool sees a sibling worker exit first (Python's
+process pool terminates every worker of a broken pool), and must still stop at a boundary.
 Outside the main thread (where Python cannot install handlers) nothing is deferred, and a signal the process
 ignores (``nohup ... &`` ignores SIGINT; so do pool workers, whose parent handles Ctrl-C) stays ignored.
 """
@@ -47,7 +48,7 @@ def deferred():
         return
 
     def handler(signum, frame):
-        if state.signum == signum:        # the same signal twice (Ctrl-C, Ctrl-C): stop now
+        if state.signum == signum == signal.SIGINT:   # Ctrl-C, Ctrl-C: stop now
             raise KeyboardInterrupt(f"signal {signum}")
         if state.signum is None:
             state.signum = signum

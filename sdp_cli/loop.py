@@ -245,7 +245,7 @@ def merge_datasets(paths: list[Path], out: Path) -> Path:
     return save_npz(out, arrays, kind="dataset", config={"merged": [str(p) for p in paths]}, **extra)
 
 
-def _train_done(policy_dir: Path) -> bool:
+def train_done(policy_dir: Path) -> bool:
     ck = policy_dir / "checkpoint.pt"
     if not ck.exists():
         return False
@@ -309,35 +309,51 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     return df
 
 
-def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print,
-             progress: bool = False) -> pd.DataFrame:
-    """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
-    ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
-    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
-    from sdp_cli.evaluate import is_timing_column
-    from sdp_cli.train import train
-
+def begin_loop(cfg: LoopConfig, out: str | os.PathLike) -> Path:
+    """The loop folder, checked against the settings it holds (:func:`check_resume`), with this start's
+    ``loop_config.json``."""
     out = Path(out)
     ensure_dir(out, "loop folder")
     check_resume(cfg, out)
     atomic_write_bytes(out / "loop_config.json", lambda f: f.write(_config_json(cfg).encode()))
+    return out
+
+
+def collect_iteration(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | None,
+                      log: Callable[[str], None] = print, progress: bool = False) -> Path:
+    """Iteration ``k``'s dataset ``out/it<k>/data.npz`` (collected unless it exists): the naive-guess TO at
+    ``k = 0``, then TO warm-started by ``prev_policy``'s rollouts with ArgminCost."""
+    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
+
+    data = out / f"it{k}" / "data.npz"
+    if not data.exists():
+        log(f"[it{k}] collect {cfg.n_traj_at(k)} trajectories" + (" (policy warm start)" if prev_policy else ""))
+        ccfg = CollectConfig(task=cfg.task, n_traj=cfg.n_traj_at(k), seed=cfg.collect_seed(k),
+                             max_iter=cfg.max_iter,
+                             policy=str(prev_policy) if prev_policy else None,
+                             policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
+                             t_a=cfg.rollout.t_a if prev_policy else None,
+                             k_rollout=cfg.rollout.k_rollout if prev_policy else None, to=cfg.to)
+        from sdp_cli.progress import collect_progress
+
+        with collect_progress(ccfg.n_traj, progress) as on_update:
+            collect(ccfg, data, workers=cfg.workers, executor=cfg.executor or "local", scheduler=cfg.scheduler,
+                    progress=on_update)
+    return data
+
+
+def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print,
+             progress: bool = False) -> pd.DataFrame:
+    """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
+    ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
+    from sdp_cli.evaluate import is_timing_column
+    from sdp_cli.train import train
+
+    out = begin_loop(cfg, out)
     tables, prev_policy, datasets = [], None, []
     for k in range(cfg.n_algo):
         d = out / f"it{k}"
-        data = d / "data.npz"
-        if not data.exists():
-            log(f"[it{k}] collect {cfg.n_traj_at(k)} trajectories" + (" (policy warm start)" if prev_policy else ""))
-            ccfg = CollectConfig(task=cfg.task, n_traj=cfg.n_traj_at(k), seed=cfg.collect_seed(k),
-                                 max_iter=cfg.max_iter,
-                                 policy=str(prev_policy) if prev_policy else None,
-                                 policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
-                                 t_a=cfg.rollout.t_a if prev_policy else None,
-                                 k_rollout=cfg.rollout.k_rollout if prev_policy else None, to=cfg.to)
-            from sdp_cli.progress import collect_progress
-
-            with collect_progress(ccfg.n_traj, progress) as on_update:
-                collect(ccfg, data, workers=cfg.workers, executor=cfg.executor or "local", scheduler=cfg.scheduler,
-                        progress=on_update)
+        data = collect_iteration(cfg, out, k, prev_policy, log, progress)
         datasets.append(data)
         train_data = data
         if not cfg.reset_buffer and k > 0:
@@ -345,7 +361,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
             if not train_data.exists():
                 merge_datasets(datasets, train_data)
         policy_dir = d / "policy"
-        if not _train_done(policy_dir):
+        if not train_done(policy_dir):
             log(f"[it{k}] train {cfg.method} for {cfg.epochs} epochs" + (" (init from previous)" if prev_policy else ""))
             train(train_data, policy_dir, cfg.train, device=cfg.device, resume=(policy_dir / "checkpoint.pt").exists(),
                   init=(prev_policy / "checkpoint.pt") if prev_policy else None, progress=progress,

@@ -61,6 +61,69 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
         raise
 
 
+def run_stack_job(configs: list[dict], outs: list[str], device: str = "auto") -> dict[str, list[dict]]:
+    """Compatible one-iteration runs (:func:`pack`), in a worker process: each run's collection, then their
+    training as one stack (:func:`sdp_cli.train_stack.train_stack`), then each run's evaluation (``sdp loop``,
+    which finds the data and the finished policy); ``{run: summary rows}``."""
+    import torch
+
+    from sdp_cli.loop import LoopConfig, begin_loop, collect_iteration, run_loop, train_done
+    from sdp_cli.train import resolve_device
+    from sdp_cli.train_stack import train_stack
+
+    torch.set_num_threads(1)
+    cfgs = [LoopConfig.from_dict(c, device=str(resolve_device(device))) for c in configs]
+    names = [Path(o).name for o in outs]
+
+    def logger(name):
+        return lambda line: print(f"{name}: {line.strip()}", file=sys.stderr, flush=True)
+
+    try:
+        for cfg, out, name in zip(cfgs, outs, names):
+            collect_iteration(cfg, begin_loop(cfg, out), 0, None, logger(name))
+        todo = [i for i, o in enumerate(outs) if not train_done(Path(o) / "it0" / "policy")]
+        if todo:
+            logger(" + ".join(names[i] for i in todo))(f"[it0] train {len(todo)} runs as one stack")
+            train_stack([Path(outs[i]) / "it0" / "data.npz" for i in todo], [Path(outs[i]) / "it0" / "policy" for i in todo],
+                        [cfgs[i].train for i in todo], device=cfgs[0].device, log=lambda s: None)
+        return {name: run_loop(cfg, out, log=logger(name)).to_dict("records") for cfg, out, name in zip(cfgs, outs, names)}
+    except KeyboardInterrupt:
+        import multiprocessing as mp
+
+        if mp.parent_process() is not None:   # a pool worker stopped by Ctrl-C/SIGTERM: checkpoints written, leave
+            os._exit(130)
+        raise
+
+
+def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Callable = run_job) -> dict[str, list[dict]]:
+    """One job of the executor: one run (``job``, :func:`run_job`) or a stack of compatible runs
+    (:func:`run_stack_job`); ``{run: summary rows}``."""
+    if len(configs) == 1:
+        return {Path(outs[0]).name: job(configs[0], outs[0], device)}
+    return run_stack_job(configs, outs, device)
+
+
+def pack(runs: dict, stack: int) -> list[list[str]]:
+    """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): one-iteration runs of
+    a stackable, compatible training config (:func:`sdp_cli.train_stack.stack_key`) share stacks of up to
+    ``stack`` runs, in the experiment's order; every other run (loops of several iterations: collect -> train ->
+    evaluate each iteration, so their stacks would wait on each other's collections) is a job of its own."""
+    from sdp_cli.train_stack import stack_key, stackable
+
+    groups: dict = {}
+    jobs: list[list[str]] = []
+    for name, cfg in runs.items():
+        if stack > 1 and cfg.n_algo == 1 and stackable(cfg.train):
+            key = stack_key(cfg.task, cfg.train)
+            if key not in groups or len(groups[key]) == stack:
+                groups[key] = []
+                jobs.append(groups[key])
+            groups[key].append(name)
+        else:
+            jobs.append([name])
+    return jobs
+
+
 def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:
     """Options given on the command line, else from ``SDP_EXECUTOR``/``SDP_WORKERS``/``SDP_SCHEDULER``."""
     executor = executor or os.environ.get(ENV_EXECUTOR) or None
@@ -76,14 +139,16 @@ def executor_options(executor: str | None, workers: int | None, scheduler: str |
 def run_group(name: str, out: str | os.PathLike, executor: str | None = None, workers: int | None = None,
               scheduler: str | None = None, device: str = "auto", only: list[str] | None = None,
               restart_changed: bool = False, log: Callable[[str], None] = print, job: Callable = run_job,
-              root: Path = Path(".")) -> pd.DataFrame:
+              root: Path = Path("."), stack: int | None = None) -> pd.DataFrame:
     """Run (or resume) every run of experiment ``name`` under ``out``; their summaries, one table.
 
     ``only``: run names to run (default all). ``restart_changed``: a run folder holding a run with
     other settings (the experiment file changed) or of another results version
     (:data:`sdp_cli.RESULTS_VERSION`) is moved aside (:func:`supersede`, never deleted) and the run
     starts over; otherwise other settings are refused before anything runs and another results version
-    is resumed. ``job``: the per-run function (tests substitute one that kills its worker once)."""
+    is resumed. ``job``: the per-run function (tests substitute one that kills its worker once). ``stack``: runs
+    per stack of compatible one-iteration runs (:func:`pack`; default :data:`sdp_cli.train_stack.DEFAULT_STACK`,
+    1: every run alone)."""
     from sdp_cli.executor import check_executor_options
     from sdp_cli.experiment import load_experiment
     from sdp_cli.pipeline import loop_configs
@@ -92,7 +157,8 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     check_executor_options(executor, workers, scheduler)
     runs = loop_configs(name, load_experiment(name, root))
     with runner_lock(Path(out)):
-        return _run_group(name, runs, Path(out), executor, workers, scheduler, device, only, restart_changed, log, job)
+        return _run_group(name, runs, Path(out), executor, workers, scheduler, device, only, restart_changed, log, job,
+                          stack)
 
 
 def lock_path(out: Path) -> Path:
@@ -131,7 +197,7 @@ def runner_lock(out: Path):
         f.close()
 
 
-def _run_group(name, runs, out, executor, workers, scheduler, device, only, restart_changed, log, job):
+def _run_group(name, runs, out, executor, workers, scheduler, device, only, restart_changed, log, job, stack=None):
     from sdp_cli.executor import error_status, make_executor
     from sdp_cli.loop import check_resume
     from sdp_cli.progress import count_progress
@@ -151,20 +217,34 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
             moved = supersede(out / key)
             log(f"  {key}: {str(e).split(': ', 1)[-1].removesuffix('; use another --out')}; moved the old run "
                 f"to {moved} and starting it over")
-    keys = list(runs)
-    argsets = [(runs[k].to_dict(), str(out / k), device) for k in keys]
+    import functools
+
+    from sdp_cli.train_stack import DEFAULT_STACK
+
+    if stack is not None and stack <= 0:
+        raise SdpError(f"--stack must be >= 1, got {stack}")
+    jobs = pack(runs, DEFAULT_STACK if stack is None else stack)
+    argsets = [([runs[k].to_dict() for k in job_keys], [str(out / k) for k in job_keys], device) for job_keys in jobs]
     tables, failed = [], []
+    n_runs = len(runs)
     with make_executor(executor, workers, scheduler) as ex:
-        log(f"{len(keys)} runs of {name!r} on {ex.describe()}")
-        with count_progress(f"{name} (runs)", len(keys), True) as on_done:
-            for done, (i, res) in enumerate(ex.imap_unordered(job, argsets), 1):
+        stacked = sum(len(j) for j in jobs if len(j) > 1)
+        log(f"{n_runs} runs of {name!r} on {ex.describe()}" +
+            (f" ({stacked} of them in {sum(1 for j in jobs if len(j) > 1)} stacks)" if stacked else ""))
+        with count_progress(f"{name} (runs)", n_runs, True) as on_done:
+            done = 0
+            for i, res in ex.imap_unordered(functools.partial(run_jobs, job=job), argsets):
+                names = ", ".join(jobs[i])
                 if res.ok:
-                    tables.append(pd.DataFrame(res.value).assign(run=keys[i]))
-                    log(f"  {keys[i]}: done")
+                    for run, rows in res.value.items():
+                        tables.append(pd.DataFrame(rows).assign(run=run))
+                    log(f"  {names}: done")
                 else:
-                    failed.append(f"{keys[i]} ({error_status(res.error)})")
-                    log(f"  {keys[i]}: FAILED: {error_status(res.error)}")
-                on_done(done, len(keys))
+                    failed += [f"{k} ({error_status(res.error)})" for k in jobs[i]]
+                    log(f"  {names}: FAILED: {error_status(res.error)}")
+                done += len(jobs[i])
+                on_done(done, n_runs)
+    keys = list(runs)
     if failed:
         raise SdpError(f"{len(failed)} of {len(keys)} runs failed: {'; '.join(failed)}; the others are kept, "
                        "re-run to retry the failed ones")

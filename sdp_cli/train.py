@@ -243,12 +243,79 @@ def _restore(prev: dict, policy, opt, sched, ema, gen, dev, ck_path: Path, out: 
     return int(prev["step"]), float(ts.get("wall_time", load_timing(out).get("wall_time", 0.0)))
 
 
-def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
-          init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
-          on_step: Callable[[int], None] | None = None) -> Path:
-    """Train and return the path of the final checkpoint (see the module docstring): reconcile the config,
-    build the policy and its optimisation, then a loop of :func:`train_step` with the metrics log and
-    checkpoints."""
+class Run:
+    """One training run's state between steps: config, policy, data tensors, optimisation, metrics and step
+    counter, with its checkpoints (:meth:`save`). :func:`train` steps one; :mod:`sdp_cli.train_stack` steps
+    several at once with the same objects, so a stacked run's checkpoints, metrics and resume are a solo run's.
+    :func:`start_run` builds one."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+        self.order, self.order_epoch = None, -1
+        self.t0 = self.last_ck = time.perf_counter()
+
+    def next_batch(self) -> dict:
+        """This step's batch: the ``j``-th slice of the epoch's ``E`` samples drawn without replacement."""
+        epoch, j = divmod(self.step, self.steps_per_epoch)
+        if epoch != self.order_epoch:   # this epoch's E samples, without replacement
+            self.order = epoch_indices(self.n_samples, self.E, self.cfg.seed, epoch).to(self.device)
+            self.order_epoch = epoch
+        B = self.cfg.data.batch_size
+        idx = self.order[j * B:(j + 1) * B]
+        return {k: v[idx] for k, v in self.tensors.items()}
+
+    @property
+    def done(self) -> bool:
+        return self.step >= self.total
+
+    def record(self, loss, parts, gnorm) -> dict:
+        """After a step: count it, log its metrics row, keep the ``save_at`` checkpoint and the periodic one."""
+        self.step += 1
+        row = self.metrics.add(self.step, self.steps_per_epoch, loss, parts, self.sched.get_last_lr()[0], gnorm)
+        epoch = self.step // self.steps_per_epoch
+        if self.step % self.steps_per_epoch == 0 and epoch in self.cfg.save_at:
+            self.save(self.out / f"epoch_{epoch}.pt", with_state=False)
+        if not self.done and time.perf_counter() - self.last_ck >= self.cfg.checkpoint_every_s:
+            self.save()
+            self.last_ck = time.perf_counter()
+        return row
+
+    def save(self, path: Path | None = None, with_state: bool = True) -> None:
+        """A checkpoint (the run's ``checkpoint.pt`` by default): weights, EMA weights and, ``with_state``, the
+        optimizer, schedule, EMA and random state for ``--resume``; the metrics file with it."""
+        policy, ema = self.policy, self.ema
+        ema.store(policy.parameters())
+        ema.copy_to(policy.parameters())
+        ema_sd = {k: v.detach().clone().cpu() for k, v in policy.state_dict().items()}
+        ema.restore(policy.parameters())
+        payload = {**self.base, "epoch": self.step // self.steps_per_epoch, "step": self.step, "finished": self.done,
+                   "model": {k: v.detach().cpu() for k, v in policy.state_dict().items()}, "ema_model": ema_sd,
+                   "train_state": None}
+        if with_state:
+            payload["train_state"] = {"optimizer": self.opt.state_dict(), "lr_scheduler": self.sched.state_dict(),
+                                      "ema": ema.state_dict(), "generator": self.gen.get_state()}
+        save_checkpoint(path or self.ck_path, payload)
+        if with_state:
+            save_timing(self.out, {"wall_time": self.wall0 + (time.perf_counter() - self.t0), "step": self.step,
+                                   "device": str(self.device)})
+        self.metrics.rewrite()
+
+    def describe(self) -> str:
+        cfg, B = self.cfg, self.cfg.data.batch_size
+        n_params = sum(p.numel() for p in self.policy.parameters())
+        return (f"{cfg.method}: {self.n_traj} trajectories, {self.n_samples} samples, epoch = {self.E} samples = "
+                f"{self.steps_per_epoch} step(s) of <= {min(B, self.E)} (batch size {B}, drawn without "
+                f"replacement); {cfg.data.epochs} epochs = {self.total} steps; "
+                f"{n_params} parameters; device {self.device}" +
+                (f"; alpha_Sobolev {cfg.sobolev.alpha:g} x balance {self.policy.sobolev_scale:.3g}"
+                 if cfg.uses_sobolev else "") +
+                (f"; resuming at step {self.step}" if self.resumed else ""))
+
+
+def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
+              init: str | Path | None = None) -> Run:
+    """A run ready for its first (or next, ``resume``) step: config reconciled, data loaded, policy built (the
+    global torch seed set to the run's seed first), optimisation set up or restored; the run folder exists."""
     dev = resolve_device(device)
     out = Path(out)
     ck_path = out / CHECKPOINT_NAME
@@ -264,15 +331,13 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
     policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
     fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
     n_samples = next(iter(tensors.values())).shape[0]
-    B = cfg.data.batch_size
-    steps_per_epoch = epoch_steps(E, B)
+    steps_per_epoch = epoch_steps(E, cfg.data.batch_size)
     total = cfg.data.epochs * steps_per_epoch
     opt, sched, ema, gen = _optimisation(cfg, policy, total, init_ck, fitted_norm)
     step, wall0 = 0, 0.0
     if prev is not None:
         step, wall0 = _restore(prev, policy, opt, sched, ema, gen, dev, ck_path, out)
     rows = MetricsLog.read(out / "metrics.csv", step) if prev is not None else []
-
     created = not out.exists()
     ensure_dir(out, "run folder")
     base = {"method": cfg.method, "config": cfg.to_dict(), "dims": dims, "action": action,
@@ -283,69 +348,47 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
             "init": portable_path(init, out) if init is not None else (prev or {}).get("init"),
             "steps_per_epoch": steps_per_epoch, "total_steps": total, "device": str(dev),
             "sobolev_scale": policy.sobolev_scale}
+    return Run(cfg=cfg, out=out, ck_path=ck_path, device=dev, policy=policy, tensors=tensors, E=E,
+               n_samples=n_samples, n_traj=len(arrays["X"]), steps_per_epoch=steps_per_epoch, total=total, opt=opt,
+               sched=sched, ema=ema, gen=gen, step=step, wall0=wall0, resumed=prev is not None, created=created,
+               base=base, metrics=MetricsLog(out / "metrics.csv", rows, resumed=prev is not None))
 
-    def checkpoint(path: Path, with_state: bool = True):
-        ema.store(policy.parameters())
-        ema.copy_to(policy.parameters())
-        ema_sd = {k: v.detach().clone().cpu() for k, v in policy.state_dict().items()}
-        ema.restore(policy.parameters())
-        payload = {**base, "epoch": step // steps_per_epoch, "step": step, "finished": step >= total,
-                   "model": {k: v.detach().cpu() for k, v in policy.state_dict().items()}, "ema_model": ema_sd,
-                   "train_state": None}
-        if with_state:
-            payload["train_state"] = {"optimizer": opt.state_dict(), "lr_scheduler": sched.state_dict(),
-                                      "ema": ema.state_dict(), "generator": gen.get_state()}
-        save_checkpoint(path, payload)
-        if with_state:
-            save_timing(out, {"wall_time": wall0 + (time.perf_counter() - t0), "step": step, "device": str(dev)})
-        metrics.rewrite()
 
-    n_params = sum(p.numel() for p in policy.parameters())
-    log(f"{cfg.method}: {len(arrays['X'])} trajectories, {n_samples} samples, epoch = {E} samples = "
-        f"{steps_per_epoch} step(s) of <= {min(B, E)} (batch size {B}, drawn without "
-        f"replacement); {cfg.data.epochs} epochs = {total} steps; "
-        f"{n_params} parameters; device {dev}" +
-        (f"; alpha_Sobolev {cfg.sobolev.alpha:g} x balance {policy.sobolev_scale:.3g}" if cfg.uses_sobolev else "") +
-        (f"; resuming at step {step}" if prev is not None else ""))
-    t0 = time.perf_counter()
-    last_ck = time.perf_counter()
-    metrics = MetricsLog(out / "metrics.csv", rows, resumed=prev is not None)
-    policy.train()
+def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
+          init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
+          on_step: Callable[[int], None] | None = None) -> Path:
+    """Train and return the path of the final checkpoint (see the module docstring): :func:`start_run`, then
+    :func:`train_step` after :meth:`Run.next_batch` and :meth:`Run.record` until the last step, checkpointing
+    on Ctrl-C / SIGTERM at a step boundary."""
+    run = start_run(data, out, cfg, device, resume, init)
+    log(run.describe())
+    run.t0 = run.last_ck = time.perf_counter()
+    run.policy.train()
     bar = _progress(progress)
     from sdp_cli.interrupts import deferred
 
-    with deferred() as interrupt, _discard_if_failed_at_start(out, created, ck_path):
+    with deferred() as interrupt, _discard_if_failed_at_start(run.out, run.created, run.ck_path):
         with bar:
-            task_id = bar.add_task(cfg.method, total=total, completed=step, info="")
-            order, order_epoch = None, -1
-            while step < total:
-                epoch, j = divmod(step, steps_per_epoch)
-                if epoch != order_epoch:   # this epoch's E samples, without replacement
-                    order, order_epoch = epoch_indices(n_samples, E, cfg.seed, epoch).to(dev), epoch
-                idx = order[j * B:(j + 1) * B]
-                batch = {k: v[idx] for k, v in tensors.items()}
+            task_id = bar.add_task(run.cfg.method, total=run.total, completed=run.step, info="")
+            while not run.done:
+                batch = run.next_batch()
                 try:
-                    loss, parts, gnorm = train_step(policy, batch, opt, sched, ema, gen, cfg.optim.grad_clip)
+                    loss, parts, gnorm = train_step(run.policy, batch, run.opt, run.sched, run.ema, run.gen,
+                                                    run.cfg.optim.grad_clip)
                 except Diverged as e:
-                    raise SdpError(f"training diverged at step {step} (loss {e.loss}); "
+                    raise SdpError(f"training diverged at step {run.step} (loss {e.loss}); "
                                    f"try a lower --lr or --sobolev-alpha") from None
-                step += 1
-                row = metrics.add(step, steps_per_epoch, loss, parts, sched.get_last_lr()[0], gnorm)
-                if step % 10 == 0 or step == total:
-                    bar.update(task_id, completed=step, info=f"loss {row['loss']} dp {row['dp']} "
-                                                             f"sob {row['sobolev']} lr {row['lr']}")
-                if step % steps_per_epoch == 0 and (step // steps_per_epoch) in cfg.save_at:
-                    checkpoint(out / f"epoch_{step // steps_per_epoch}.pt", with_state=False)
-                if step < total and time.perf_counter() - last_ck >= cfg.checkpoint_every_s:
-                    checkpoint(ck_path)
-                    last_ck = time.perf_counter()
+                row = run.record(loss, parts, gnorm)
+                if run.step % 10 == 0 or run.done:
+                    bar.update(task_id, completed=run.step, info=f"loss {row['loss']} dp {row['dp']} "
+                                                                 f"sob {row['sobolev']} lr {row['lr']}")
                 if on_step is not None:
-                    on_step(step)
-                interrupt.check(lambda: checkpoint(ck_path))   # Ctrl-C / SIGTERM: stop at this step boundary
-    checkpoint(ck_path)
-    log(f"done: {step} steps, final loss {metrics.rows[-1]['loss'] if metrics.rows else 'n/a'}, "
-        f"{time.perf_counter() - t0:.1f} s; checkpoint {ck_path}")
-    return ck_path
+                    on_step(run.step)
+                interrupt.check(run.save)   # Ctrl-C / SIGTERM: stop at this step boundary
+    run.save()
+    log(f"done: {run.step} steps, final loss {run.metrics.rows[-1]['loss'] if run.metrics.rows else 'n/a'}, "
+        f"{time.perf_counter() - run.t0:.1f} s; checkpoint {run.ck_path}")
+    return run.ck_path
 
 
 @contextlib.contextmanager

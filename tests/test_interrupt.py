@@ -109,3 +109,35 @@ def test_ctrl_c_during_a_loop_then_the_same_command_gives_the_same_results(tmp_p
     cols = ["iteration", "policy_cost_mean", "success_rate"]
     pd.testing.assert_frame_equal(got[cols], ref[cols])
     assert metrics(out / "it0" / "policy") == metrics(tmp_path / "ref" / "it0" / "policy")
+
+
+def test_only_ctrl_c_twice_interrupts_at_once():
+    """A pool worker gets SIGTERM from its parent, and again when the pool sees a sibling worker exit first: the
+    second SIGTERM must not cut its checkpoint short; Ctrl-C twice (an impatient user) still stops at once."""
+    import time
+
+    from sdp_cli.interrupts import deferred
+
+    before = signal.getsignal(signal.SIGINT)
+    if before is signal.SIG_IGN:                              # (a suite run in the background ignores SIGINT)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _twice(deferred, time)
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def _twice(deferred, time):
+    with deferred() as interrupt:
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGTERM)                 # pending, not raised
+        assert interrupt.pending and interrupt.signum == signal.SIGTERM
+        saved = []
+        with pytest.raises(KeyboardInterrupt):
+            interrupt.check(lambda: saved.append(True))
+        assert saved == [True]
+    with pytest.raises(KeyboardInterrupt):
+        with deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)              # raised at once
+            time.sleep(1)

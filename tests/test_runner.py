@@ -48,7 +48,7 @@ def root(tmp_path_factory):
 def sequential(root):
     """The reference: the runs one after another in this process."""
     out = root / "seq"
-    df = run_group("tiny", out, executor="local", workers=1, device="cpu", root=root, log=lambda s: None)
+    df = run_group("tiny", out, executor="local", workers=1, device="cpu", root=root, log=lambda s: None, stack=1)
     return out, df
 
 
@@ -89,7 +89,7 @@ def test_sequential_runs_evaluate_both_budgets(sequential):
 
 def test_parallel_runs_equal_sequential(root, sequential):
     out = root / "par"
-    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None)
+    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None, stack=1)
     pd.testing.assert_frame_equal(_table(df), _table(sequential[1]))
     _same_runs(out, sequential[0])
 
@@ -99,7 +99,8 @@ def test_killed_worker_run_is_redone_and_equals_sequential(root, sequential, tmp
 
     out = root / "killed"
     job = functools.partial(die_once_after_training, str(tmp_path / "killed-once"))
-    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None, job=job)
+    df = run_group("tiny", out, executor="local", workers=2, device="cpu", root=root, log=lambda s: None, job=job,
+                   stack=1)
     assert (tmp_path / "killed-once").exists()       # a worker did die
     pd.testing.assert_frame_equal(_table(df), _table(sequential[1]))
     _same_runs(out, sequential[0])
@@ -193,3 +194,28 @@ def test_status_reports_each_run_from_its_folder(root, sequential, tmp_path, mon
     r = CliRunner().invoke(app, ["pipeline", "tiny", "--status", "--out", str(out)])
     assert r.exit_code == 0 and "1 not started, 1 other settings" in r.output
     assert sorted(p.name for p in out.iterdir()) == [RUNS[0]]          # reads only
+
+
+SIX = TINY.replace("seeds: [0, 1]", "seeds: [0, 1, 2]").replace("n_traj: [2]", "n_traj: [2, 3]")
+
+
+def test_compatible_runs_train_as_one_stack_and_equal_their_solo_runs(root):
+    """`sdp pipeline --run` packs compatible one-iteration runs (3 seeds x 2 dataset sizes) into one stack: the
+    same evaluations as the runs trained one by one, to float32 rounding."""
+    from sdp_cli.runner import pack
+
+    (root / "pipelines" / "six.yaml").write_text(SIX)
+    runs = loop_configs("six", __import__("sdp_cli.experiment", fromlist=["x"]).load_experiment("six", root))
+    assert pack(runs, 8) == [list(runs)] and pack(runs, 4) == [list(runs)[:4], list(runs)[4:]]
+    assert pack(runs, 1) == [[r] for r in runs]
+    solo = run_group("six", root / "six-solo", executor="local", workers=2, device="cpu", root=root,
+                     log=lambda s: None, stack=1)
+    stacked = run_group("six", root / "six-stack", executor="local", workers=2, device="cpu", root=root,
+                        log=lambda s: None)
+    a = solo.sort_values(["run", "epochs"]).reset_index(drop=True)
+    b = stacked.sort_values(["run", "epochs"]).reset_index(drop=True)
+    assert list(a.run) == list(b.run) and len(set(a.run)) == 6
+    for col in ("policy_cost_mean", "success_rate", "to_alone_cost_mean"):
+        np.testing.assert_allclose(b[col], a[col], rtol=1e-3, err_msg=col)
+    ck = torch.load(root / "six-stack" / "pendulum-dp-n3-s2" / "it0" / "policy" / "checkpoint.pt", weights_only=True)
+    assert ck["finished"] and ck["dataset"]["n_traj"] == 3     # each member's checkpoint: a solo one

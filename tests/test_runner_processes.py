@@ -137,9 +137,9 @@ def test_ctrl_c_of_the_parallel_runner_then_the_same_command_gives_the_same_resu
     (root / "pipelines" / "mid.yaml").write_text(MID)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     ref, out = tmp_path / "runs" / "ref", tmp_path / "runs" / "mid"
-    subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(ref)), cwd=root, env=env,
+    subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--stack", "1", "--out", str(ref)), cwd=root, env=env,
                    check=True, capture_output=True)
-    p = subprocess.Popen(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(out)), cwd=root, env=env,
+    p = subprocess.Popen(_sdp("pipeline", "mid", "--run", "--workers", "2", "--stack", "1", "--out", str(out)), cwd=root, env=env,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
                          # as from a terminal, even when this suite runs in the background (SIGINT ignored)
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
@@ -152,7 +152,7 @@ def test_ctrl_c_of_the_parallel_runner_then_the_same_command_gives_the_same_resu
     from sdp_cli.policy.checkpoint import load_checkpoint
 
     assert not all(load_checkpoint(out / r / "it0" / "policy")["finished"] for r in runs)   # stopped mid-training
-    r = subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--out", str(out)), cwd=root, env=env,
+    r = subprocess.run(_sdp("pipeline", "mid", "--run", "--workers", "2", "--stack", "1", "--out", str(out)), cwd=root, env=env,
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     for run in runs:

@@ -182,7 +182,7 @@ class StackedUnet1D(nn.Module):
         return _mish_t(*_gn_t(gn, *_linear_t(conv, x, xd)))
 
     def _res_t(self, blk: FiLMResBlock, x, xd, c, cd):
-        B, R = x.shape[0], self.R
+        R = self.R
         h, hd = self._block_t(blk.block1, x, xd)
         m, md = _mish_t(c, cd)
         f, fd = _linear_t(blk.film[1], m, md)
