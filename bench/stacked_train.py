@@ -2,7 +2,7 @@
 measured side by side in one run (issue "Many runs at once").
 
     python bench/stacked_train.py [--stacks 1,5,10,25] [--batches 16,64] [--shapes ur5,quadrotor,double_pendulum]
-                                  [--rounds 5] [--threads 1] [--device cpu]
+                                  [--rounds 5] [--threads 1] [--device cpu] [--trainer]
 
 A *network step* of one run: the loss (DP: eq. (2)'s regression of the denoised chunk; SDP: the same plus the
 jvp-mode Sobolev term, the network's hand-written tangent propagation along one random state direction),
@@ -12,6 +12,11 @@ stepped one after the other (what R runs in one process cost today); stacked: on
 and one optimizer over it. Both are timed round-robin; the median per configuration is printed with the ratio
 (stacked run-steps/s over solo run-steps/s). The stacked step here clips and schedules all members alike; the
 per-member clipping, schedules and random streams of a stacked trainer add a few small ops per step.
+
+``--trainer``: instead, the trainer's own steps on a real task's shapes: one step of R runs of
+``sdp_cli.train_stack.Stack`` (per-member draws, the stacked network, each member's own clipping, AdamW and
+EMA, as ``sdp pipeline --run`` trains them) against R steps of ``sdp_cli.train.train_step`` (a solo run's),
+both measured by ``sdp_cli.estimate`` (``stacked_step_seconds``, ``step_seconds``) in this one run.
 """
 
 from __future__ import annotations
@@ -92,11 +97,14 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--trainer", action="store_true", help="the trainer's steps (sdp_cli.train_stack.Stack)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
     print(f"torch {torch.__version__}, {a.threads} thread(s), device {dev}; {time.strftime('%Y-%m-%d %H:%M')}")
+    if a.trainer:
+        return trainer_table(a, dev)
     print("| shape | mode | B | R | solo run-steps/s | stacked run-steps/s | stacked / solo |")
     print("|---|---|---|---|---|---|---|")
     for shape in a.shapes.split(","):
@@ -116,6 +124,25 @@ def main() -> None:
                             times[s].append(time.perf_counter() - t0)
                     solo, st = (R / statistics.median(times[s]) for s in (False, True))
                     print(f"| {shape} | {mode} | {B} | {R} | {solo:.1f} | {st:.1f} | {st / solo:.2f}x |", flush=True)
+
+
+#: the trainer table's tasks: fig1's UR5 and quadrotor, fig2's double pendulum (T_h 16)
+TASKS = {"ur5": ("ur5-fixed", 32), "quadrotor": ("quadrotor-0", 32), "double_pendulum": ("double_pendulum", 16)}
+
+
+def trainer_table(a, dev) -> None:
+    from sdp_cli.estimate import stacked_step_seconds, step_seconds
+
+    print("| task | method | B | R | solo run-steps/s | stacked run-steps/s | stacked / solo |")
+    print("|---|---|---|---|---|---|---|")
+    for shape in a.shapes.split(","):
+        task, T_h = TASKS[shape]
+        for method in a.modes.split(","):
+            for B in (int(b) for b in a.batches.split(",")):
+                for R in (int(r) for r in a.stacks.split(",")):
+                    solo = 1 / step_seconds(task, method, T_h, B, device=str(dev), max_s=a.rounds)
+                    st = R / stacked_step_seconds(task, method, T_h, B, R, device=str(dev), max_s=a.rounds)
+                    print(f"| {task} | {method} | {B} | {R} | {solo:.1f} | {st:.1f} | {st / solo:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":

@@ -106,22 +106,24 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 def pack(runs: dict, stack: int) -> list[list[str]]:
     """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): one-iteration runs of
     a stackable, compatible training config (:func:`sdp_cli.train_stack.stack_key`) share stacks of up to
-    ``stack`` runs, in the experiment's order; every other run (loops of several iterations: collect -> train ->
-    evaluate each iteration, so their stacks would wait on each other's collections) is a job of its own."""
+    ``stack`` runs, ordered by dataset size (a stack pads its members' batches to its largest, so runs of one
+    size go together), then by the experiment's order; every other run (loops of several iterations: collect ->
+    train -> evaluate each iteration, so their stacks would wait on each other's collections) is a job of its own.
+    Stacks first, then the runs alone; the same experiment gives the same jobs on every machine."""
     from sdp_cli.train_stack import stack_key, stackable
 
     groups: dict = {}
-    jobs: list[list[str]] = []
+    alone: list[list[str]] = []
     for name, cfg in runs.items():
         if stack > 1 and cfg.n_algo == 1 and stackable(cfg.train):
-            key = stack_key(cfg.task, cfg.train)
-            if key not in groups or len(groups[key]) == stack:
-                groups[key] = []
-                jobs.append(groups[key])
-            groups[key].append(name)
+            groups.setdefault(stack_key(cfg.task, cfg.train), []).append(name)
         else:
-            jobs.append([name])
-    return jobs
+            alone.append([name])
+    jobs = []
+    for names in groups.values():
+        names = sorted(names, key=lambda n: runs[n].n_traj_at(0))     # stable: the experiment's order within a size
+        jobs += [names[i:i + stack] for i in range(0, len(names), stack)]
+    return jobs + alone
 
 
 def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:

@@ -206,7 +206,9 @@ def test_compatible_runs_train_as_one_stack_and_equal_their_solo_runs(root):
 
     (root / "pipelines" / "six.yaml").write_text(SIX)
     runs = loop_configs("six", __import__("sdp_cli.experiment", fromlist=["x"]).load_experiment("six", root))
-    assert pack(runs, 8) == [list(runs)] and pack(runs, 4) == [list(runs)[:4], list(runs)[4:]]
+    by_size = sorted(runs, key=lambda n: runs[n].n_traj_at(0))
+    assert pack(runs, 8) == [by_size] and pack(runs, 4) == [by_size[:4], by_size[4:]]
+    assert [runs[n].n_traj_at(0) for n in by_size] == [2, 2, 2, 3, 3, 3]
     assert pack(runs, 1) == [[r] for r in runs]
     solo = run_group("six", root / "six-solo", executor="local", workers=2, device="cpu", root=root,
                      log=lambda s: None, stack=1)

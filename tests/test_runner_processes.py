@@ -125,7 +125,7 @@ def test_kill_9_takes_workers_and_their_children_along(root, tmp_path, under_dvc
                 pass
 
 
-MID = LONG.replace("epochs: 100000", "epochs: 1500").replace("train: {batch_size: 8}",
+MID = LONG.replace("epochs: 100000", "epochs: 600").replace("train: {batch_size: 8}",
                                                              "train: {batch_size: 8, down_dims: [8, 16], n_groups: 4}")
 
 

@@ -276,9 +276,9 @@ def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypat
 
 def test_metrics_csv_follows_training_between_checkpoints(data, tmp_path, monkeypatch):
     """metrics.csv is appended to while training runs (not only with each checkpoint), row for row."""
-    import sdp_cli.train as tr
+    import sdp_cli.data.metrics_log as ml
 
-    monkeypatch.setattr(tr, "METRICS_EVERY_S", 0.0)
+    monkeypatch.setattr(ml, "METRICS_EVERY_S", 0.0)
     seen = {}
 
     def look(step):

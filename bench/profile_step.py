@@ -1,0 +1,71 @@
+"""Where one solo training step's time goes (issue "Many runs at once": profile first).
+
+    python bench/profile_step.py [dp|sdp] [B]
+
+Times, with one torch thread, the parts of the trainer's step on a synthetic batch of UR5's shapes (A 12,
+n_obs 24, n_xi 6, ndx 12, T_h 32, the default U-Net): batch gathering, loss (the policy's ``compute_loss``),
+backward, gradient clipping, AdamW (foreach), the LR schedule, EMA (diffusers' ``EMAModel``) and reading the
+metrics row; medians of 50 steps after 10 warm-up steps, printed in ms.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import torch
+from diffusers.optimization import get_scheduler
+from diffusers.training_utils import EMAModel
+
+from sdp_cli.estimate import _synthetic_batch
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.registry import make_policy
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    method = sys.argv[1] if len(sys.argv) > 1 else "sdp"
+    B = int(sys.argv[2]) if len(sys.argv) > 2 else 32
+    T_h = 32
+    dims = {"n_action": 12, "n_obs": 24, "n_xi": 6, "ndx": 12}
+    cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B)
+    torch.manual_seed(0)
+    pol = make_policy(cfg, dims)
+    opt = torch.optim.AdamW(pol.parameters(), lr=1e-3, betas=(0.95, 0.999), weight_decay=1e-6, foreach=True)
+    sched = get_scheduler("cosine", opt, num_warmup_steps=10, num_training_steps=100000)
+    ema = EMAModel(pol.parameters(), decay=0.9999, use_ema_warmup=True, inv_gamma=1.0, power=0.75)
+    gen = torch.Generator().manual_seed(0)
+    batch = _synthetic_batch(method, dims, T_h, 4 * B, gen, "cpu")
+    params = list(pol.parameters())
+    T = {k: [] for k in ("gather", "loss", "backward", "clip", "opt", "sched", "ema", "metrics")}
+    for it in range(60):
+        t = [time.perf_counter()]
+        idx = torch.randperm(4 * B, generator=gen)[:B]
+        b = {k: v[idx] for k, v in batch.items()}
+        t.append(time.perf_counter())
+        loss, parts = pol.compute_loss(b, gen)
+        t.append(time.perf_counter())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        t.append(time.perf_counter())
+        g = torch.nn.utils.clip_grad_norm_(params, 1.0)
+        t.append(time.perf_counter())
+        opt.step()
+        t.append(time.perf_counter())
+        sched.step()
+        t.append(time.perf_counter())
+        ema.step(params)
+        t.append(time.perf_counter())
+        (f"{loss.item():.6g}", f"{parts['dp'].item():.6g}", f"{parts['sobolev'].item():.6g}", f"{float(g):.4g}")
+        t.append(time.perf_counter())
+        if it >= 10:
+            for k, a, z in zip(T, t[:-1], t[1:]):
+                T[k].append(z - a)
+    tot = sum(np.median(v) for v in T.values())
+    print(f"{method} B {B} ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, 1 thread): total "
+          f"{1e3 * tot:.1f} ms; " + ", ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in T.items()))
+
+
+if __name__ == "__main__":
+    main()
