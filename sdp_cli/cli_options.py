@@ -110,19 +110,15 @@ def _list_parser(flag: str, kind: type):
 def _option_param(name: str, required: tuple[str, ...]):
     """``(inspect.Parameter, parse)`` of training option ``name`` (:func:`sdp_cli.policy.config.options`)."""
     import inspect
-    import types
-    import typing
 
-    from sdp_cli.policy.config import option_field, options
+    from sdp_cli.policy.config import option_field, option_type, options
 
-    ann, default, help_ = option_field(name)
-    args = [a for a in typing.get_args(ann) if a is not type(None)]
-    optional = typing.get_origin(ann) in (typing.Union, types.UnionType)
-    base = args[0] if optional else ann
+    _, default, help_ = option_field(name)
+    base, item, _ = option_type(name)
     flag = "--" + name.replace("_", "-")
     parse = None
-    if typing.get_origin(base) is list:
-        parse, base = _list_parser(flag, typing.get_args(base)[0]), str
+    if item is not None:
+        parse, base = _list_parser(flag, item), str
         shown = ",".join(str(v) for v in default)
     else:
         shown = str(default)

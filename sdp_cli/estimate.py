@@ -118,13 +118,7 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
         loss, _, _ = train_step(policy, batch, opt, None, ema, g, cfg.optim.grad_clip)
         loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
-    step()
-    times, t_start = [], time.perf_counter()
-    while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return _median_seconds(step, max_s)
 
 
 def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
@@ -144,6 +138,18 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
         log(f"calibrated {key[1]} on {key[0]} (T_h {key[2]}): {t_lo * 1e3:.1f} ms at B={lo}"
             + (f", {t_hi * 1e3:.1f} ms at B={hi}" if hi != lo else ""))
     return out
+
+
+def _median_seconds(step, max_s: float) -> float:
+    """Median seconds of ``step()`` over the calls that fit in ``max_s`` (at least 2, at most 20), after one
+    warm-up call."""
+    step()
+    times, t_start = [], time.perf_counter()
+    while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
 
 
 def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
@@ -181,13 +187,7 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
         for loss, _, _ in stack.step():
             loss.detach().item()
 
-    step()
-    times, t_start = [], time.perf_counter()
-    while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return _median_seconds(step, max_s)
 
 
 def _interp(cal: tuple, B: int) -> float:

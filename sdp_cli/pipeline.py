@@ -55,20 +55,10 @@ def train_option_names() -> set[str]:
 
 def train_option_type(name: str) -> str:
     """The :func:`sdp_cli.experiment.type_ok` spec of a training option, from its field's annotation."""
-    import types
-    import typing
+    from sdp_cli.policy.config import option_type
 
-    from sdp_cli.policy.config import option_field
-
-    ann = option_field(name)[0]
-    args = [a for a in typing.get_args(ann) if a is not type(None)]
-    opt = typing.get_origin(ann) in (typing.Union, types.UnionType)
-    base = args[0] if opt else ann
-    if typing.get_origin(base) is list:
-        spec = "[" + typing.get_args(base)[0].__name__ + "]"
-    else:
-        spec = base.__name__
-    return spec + ("?" if opt else "")
+    base, item, optional = option_type(name)
+    return (f"[{item.__name__}]" if item is not None else base.__name__) + ("?" if optional else "")
 
 
 def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F821 (sdp_cli.loop.LoopConfig)

@@ -37,6 +37,15 @@ from sdp_cli.errors import SdpError
 ENV_EXECUTOR, ENV_WORKERS, ENV_SCHEDULER = "SDP_EXECUTOR", "SDP_WORKERS", "SDP_SCHEDULER"
 
 
+def _leave_if_pool_worker() -> None:
+    """A pool worker stopped by Ctrl-C/SIGTERM has written its checkpoints at a step boundary: it exits (130)
+    without a traceback; elsewhere the ``KeyboardInterrupt`` goes on."""
+    import multiprocessing as mp
+
+    if mp.parent_process() is not None:
+        os._exit(130)
+
+
 def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     """One run, in a worker process: ``sdp loop`` with one torch thread; its summary rows."""
     import torch
@@ -54,10 +63,7 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     try:
         return run_loop(cfg, out, log=log).to_dict("records")
     except KeyboardInterrupt:
-        import multiprocessing as mp
-
-        if mp.parent_process() is not None:   # a pool worker stopped by Ctrl-C/SIGTERM: checkpoint written, leave
-            os._exit(130)
+        _leave_if_pool_worker()
         raise
 
 
@@ -88,10 +94,7 @@ def run_stack_job(configs: list[dict], outs: list[str], device: str = "auto") ->
                         [cfgs[i].train for i in todo], device=cfgs[0].device, log=lambda s: None)
         return {name: run_loop(cfg, out, log=logger(name)).to_dict("records") for cfg, out, name in zip(cfgs, outs, names)}
     except KeyboardInterrupt:
-        import multiprocessing as mp
-
-        if mp.parent_process() is not None:   # a pool worker stopped by Ctrl-C/SIGTERM: checkpoints written, leave
-            os._exit(130)
+        _leave_if_pool_worker()
         raise
 
 

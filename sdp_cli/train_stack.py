@@ -28,6 +28,7 @@ import torch
 from sdp_cli.errors import SdpError
 from sdp_cli.losses.sobolev import random_unit
 from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.diffusion import chunk_tangents
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes everywhere)
 DEFAULT_STACK = 8
@@ -98,15 +99,8 @@ class Stack:
             rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
         for _ in range(s.n_proj):
             w = random_unit((n_s, J.shape[-1]), g, dev, J.dtype)
-            o_d = torch.einsum("btoi,bi->bto", batch["obs_jac"][:n_s], w)
+            o_d, tau_d = chunk_tangents(w, batch["obs_jac"], a_hist, a_hist_jac, rest, rest_jac)
             cond_d = torch.cat([torch.zeros_like(xi[:n_s]), o_d.flatten(1)], dim=-1)
-            tau_d = None
-            if a_hist_jac is not None or rest_jac is not None:
-                a_d = (torch.zeros_like(a_hist[:n_s]) if a_hist_jac is None
-                       else torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w))
-                r_d = (torch.zeros_like(rest[:n_s]) if rest_jac is None
-                       else torch.einsum("btai,bi->bta", rest_jac[:n_s], w))
-                tau_d = torch.cat([a_d, r_d], dim=1)
             m["projections"].append((w, cond_d, tau_d))
         return m
 

@@ -238,6 +238,20 @@ def option_field(name: str):
     return get_type_hints(cls)[fname], default, f.metadata.get("help", "")
 
 
+def option_type(name: str) -> tuple[type, type | None, bool]:
+    """``(type, item type, optional)`` of an option's annotation: ``int | None`` -> ``(int, None, True)``,
+    ``list[int]`` -> ``(list, int, False)``."""
+    import types
+    import typing
+
+    ann = option_field(name)[0]
+    optional = typing.get_origin(ann) in (typing.Union, types.UnionType)
+    base = next(a for a in typing.get_args(ann) if a is not type(None)) if optional else ann
+    if typing.get_origin(base) is list:
+        return list, typing.get_args(base)[0], optional
+    return base, None, optional
+
+
 def _positive(cfg: TrainConfig, *names: str) -> None:
     for name in names:
         s, f = options()[name]

@@ -57,6 +57,19 @@ def rollout_timesteps(K: int, k_rollout: int) -> list[int]:
     return [int(t) for t in np.round(np.linspace(K - 1, 0, k_rollout))]
 
 
+def chunk_tangents(w, obs_jac, a_hist, a_hist_jac, rest, rest_jac):
+    """``(o_d (n, T_o, n_o), tau_d (n, T_h, A) or None)``: the tangents of the observation history and of the
+    network's input chunk (history rows, then the noisy rows) along state directions ``w (n, ndx)`` of the first
+    ``n`` samples; ``a_hist_jac`` / ``rest_jac`` None: those rows do not depend on the state."""
+    n = w.shape[0]
+    o_d = torch.einsum("btoi,bi->bto", obs_jac[:n], w)
+    if a_hist_jac is None and rest_jac is None:
+        return o_d, None
+    a_d = torch.zeros_like(a_hist[:n]) if a_hist_jac is None else torch.einsum("btai,bi->bta", a_hist_jac[:n], w)
+    r_d = torch.zeros_like(rest[:n]) if rest_jac is None else torch.einsum("btai,bi->bta", rest_jac[:n], w)
+    return o_d, torch.cat([a_d, r_d], dim=1)
+
+
 class DiffusionUnetPolicy(Policy):
     """Conditional 1-D U-Net + DDPM over chunks ``tau (B, T_h, A)``, conditioned on ``o_hist (B, T_o, n_o)``
     with ``o = (obs(x), u_prev)`` and on ``xi``; history inpainted.
@@ -148,14 +161,7 @@ class DiffusionUnetPolicy(Policy):
         n_s = B if cfg.mode == "vjp" else max(1, round(cfg.fraction * B))
 
         def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
-            o_d = torch.einsum("btoi,bi->bto", obs_jac[:n_s], w)
-            tau_d = None
-            if a_hist_jac is not None or rest_jac is not None:
-                a_d = (torch.zeros_like(a_hist[:n_s]) if a_hist_jac is None
-                       else torch.einsum("btai,bi->bta", a_hist_jac[:n_s], w))
-                r_d = (torch.zeros_like(rest[:n_s]) if rest_jac is None
-                       else torch.einsum("btai,bi->bta", rest_jac[:n_s], w))
-                tau_d = torch.cat([a_d, r_d], dim=1)
+            o_d, tau_d = chunk_tangents(w, obs_jac, a_hist, a_hist_jac, rest, rest_jac)
             y, yd = self.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
             return y[:, T_o:], yd[:, T_o:]
 

@@ -24,8 +24,8 @@ import copy
 import torch
 from torch import nn
 
-from sdp_cli.policy.tangent_ops import group_norm_jvp, mish_jvp
-from sdp_cli.policy.unet import ConditionalUnet1D, ConvBlock, FiLMResBlock, StepEmbedding
+from sdp_cli.policy.unet import (ConditionalUnet1D, ConvBlock, FiLMResBlock, StepEmbedding, _group_norm_t,
+                                 _linear_t, _mish_t)
 
 
 class StackedLinear(nn.Module):
@@ -65,36 +65,6 @@ def _stack_module(module: nn.Module, R: int) -> nn.Module:
         new = _stack_layer(child, R)
         setattr(out, name, new if new is not child else _stack_module(child, R))
     return out
-
-
-def _linear_t(layer: nn.Module, x: torch.Tensor, xd: torch.Tensor | None):
-    """A linear layer on a primal and its tangent (the tangent has no bias)."""
-    if xd is None:
-        return layer(x), None
-    B = x.shape[0]
-    out = layer(torch.cat([x, xd], dim=0))
-    y, yd = out[:B], out[B:]
-    if layer.bias is not None:
-        yd = yd - (layer.bias if isinstance(layer, StackedLinear) else layer.bias[:, None])
-    return y, yd
-
-
-def _sub(op, fused, x, xd):
-    if xd is None:
-        return op(x), None
-    n = xd.shape[0]
-    if n == x.shape[0]:
-        return fused(x, xd)
-    y, yd = fused(x[:n], xd)
-    return torch.cat([y, op(x[n:])], dim=0), yd
-
-
-def _mish_t(x, xd):
-    return _sub(nn.functional.mish, mish_jvp, x, xd)
-
-
-def _gn_t(gn, x, xd):
-    return _sub(gn, lambda a, b: group_norm_jvp(gn, a, b), x, xd)
 
 
 def _per_member_cat(a: torch.Tensor, b: torch.Tensor, R: int) -> torch.Tensor:
@@ -179,7 +149,7 @@ class StackedUnet1D(nn.Module):
     # ------------------------------------------------------------------ tangents
     def _block_t(self, blk: ConvBlock, x, xd):
         conv, gn, _ = blk
-        return _mish_t(*_gn_t(gn, *_linear_t(conv, x, xd)))
+        return _mish_t(*_group_norm_t(gn, *_linear_t(conv, x, xd)))
 
     def _res_t(self, blk: FiLMResBlock, x, xd, c, cd):
         R = self.R

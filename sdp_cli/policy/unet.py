@@ -33,8 +33,8 @@ def _linear_t(layer: nn.Module, x: torch.Tensor, xd: torch.Tensor | None):
     B = x.shape[0]
     out = layer(torch.cat([x, xd], dim=0))
     y, yd = out[:B], out[B:]
-    if layer.bias is not None:
-        yd = yd - (layer.bias[:, None] if yd.dim() == 3 else layer.bias)
+    if layer.bias is not None:   # a convolution's bias is per channel (dim 1); a linear layer's is the last dim
+        yd = yd - (layer.bias[:, None] if isinstance(layer, (nn.Conv1d, nn.ConvTranspose1d)) else layer.bias)
     return y, yd
 
 

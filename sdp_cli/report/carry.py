@@ -77,6 +77,10 @@ class Carried:
         method with fresh runs at another budget only is not drawn either)."""
         return bool(self.runs) and any(set(g.run) <= self.runs for _, g in rows.groupby("method"))
 
+    def kept_traj(self, rows: pd.DataFrame, task: str) -> bool:
+        """``traj_<task>.png`` stays the earlier report's: :meth:`keeps_traj` of the task's rows, and it exists."""
+        return self.keeps_traj(rows[rows.task == task]) and (self.out / f"traj_{task}.png").is_file()
+
 
 def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:
     """``df`` (rows read from run folders, or None: none) extended by the rows of ``out/all_runs.csv``

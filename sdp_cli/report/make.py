@@ -91,8 +91,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     # there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
     drawn = Carried(out, kept, fresh_methods(bdf, kept))
     rows = {"raw": (df, None), "variants": (fdf, carried), "budget": (bdf, drawn)}
-    kept_traj = [t for t in sorted(bdf.task.dropna().unique())
-                 if carried.keeps_traj(bdf[bdf.task == t]) and (out / f"traj_{t}.png").is_file()]
+    kept_traj = [t for t in sorted(bdf.task.dropna().unique()) if carried.kept_traj(bdf, t)]
     for fig in (f for f in FIGURES if f.rows == "raw"):        # the raw rows' figures first, then per task
         for task in sorted(df.task.dropna().unique()):
             written += fig.draw(df, task, out, None)

@@ -76,16 +76,22 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
     return df
 
 
+def split_family(method: str) -> tuple[str, str | None]:
+    """``(variant without its TO family, family)`` of a drawn variant: ``sdp-to-ddp`` -> ``("sdp", "ddp")``;
+    no family suffix: ``(method, None)``."""
+    m = re.fullmatch(r"(.+)-to-(\w+)", str(method))
+    return (m[1], m[2]) if m else (str(method), None)
+
+
 def family_of(method: str) -> str:
     """The TO family of a drawn variant (``sdp-to-ddp`` -> ``ddp``; no suffix: ``ms``)."""
-    m = re.search(r"-to-(\w+)$", str(method))
-    return m[1] if m else "ms"
+    return split_family(method)[1] or "ms"
 
 
 def plain_method(method: str) -> str:
     """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
     :func:`method_variants`)."""
-    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?(-to-\w+)?$", "", method)
+    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", split_family(method)[0])
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:

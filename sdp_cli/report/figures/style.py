@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
+from sdp_cli.report.rows import split_family
 
 _HTA = re.compile(r"h(\d+)-ta(\d+)")
 
@@ -31,10 +32,10 @@ class _Shades(dict):
     def get(self, key, default=None, among=()):
         if key in self:
             return self[key]
-        m = re.fullmatch(r"(.+)-to-(\w+)", str(key))
-        if m:    # a TO-family variant: its method's, lighter for a family other than ours (ms)
-            value = self.get(m[1], default, among=[re.sub(r"-to-\w+$", "", str(a)) for a in among])
-            if not self.shade or value is None or m[2] == "ms":
+        base, family = split_family(key)
+        if family:    # a TO-family variant: its method's, lighter for a family other than ours (ms)
+            value = self.get(base, default, among=[split_family(a)[0] for a in among])
+            if not self.shade or value is None or family == "ms":
                 return value
             import matplotlib.colors as mc
 
@@ -66,9 +67,9 @@ class _Shades(dict):
 
 def method_label(method: str) -> str:
     """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO ddp)``."""
-    m = re.fullmatch(r"(.+)-to-(\w+)", str(method))
-    if m:
-        return f"{method_label(m[1])} (TO {m[2]})"
+    base, family = split_family(method)
+    if family:
+        return f"{method_label(base)} (TO {family})"
     pair = _pair(method)
     if pair:
         return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"

@@ -59,9 +59,8 @@ def _refine_note(f: dict, j: int) -> str:
 def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """``traj_<task>.png`` (:func:`trajectories`), or the earlier report's where some method it draws has only
     carried runs, whose rollouts are gone (``carried``: :class:`~sdp_cli.report.carry.Carried`)."""
-    kept = out / f"traj_{task}.png"
-    if carried is not None and carried.keeps_traj(df[df.task == task]) and kept.is_file():
-        return [kept]
+    if carried is not None and carried.kept_traj(df, task):
+        return [out / f"traj_{task}.png"]
     return trajectories(df, task, out)
 
 
