@@ -96,20 +96,18 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
                  max_s: float = 5.0) -> float:
     """Measured seconds of one training step (loss, backward, clipping, AdamW, EMA); median of the
     steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
-    from diffusers.training_utils import EMAModel
-
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
-    from sdp_cli.train import train_step
+    from sdp_cli.train import ema_for, optimizer_for, train_step
 
     task = get_task(task_name)
     cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     torch.manual_seed(0)
     policy = make_policy(cfg, dims).to(device)
-    opt = torch.optim.AdamW(policy.parameters(), lr=cfg.optim.lr)
-    ema = EMAModel(policy.parameters(), decay=cfg.optim.ema_max_decay, use_ema_warmup=True, power=cfg.optim.ema_power)
+    opt = optimizer_for(cfg, policy.parameters())
+    ema = ema_for(cfg, policy.parameters())
     gen = torch.Generator().manual_seed(0)
     batch = _synthetic_batch(method, dims, T_h, B, gen, device)
     g = torch.Generator(device=device).manual_seed(0)
@@ -159,11 +157,10 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
     synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up)."""
     from types import SimpleNamespace
 
-    from diffusers.training_utils import EMAModel
-
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
+    from sdp_cli.train import ema_for, optimizer_for
     from sdp_cli.train_stack import Stack
 
     task = get_task(task_name)
@@ -173,13 +170,12 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
     for r in range(R):
         torch.manual_seed(r)
         pol = make_policy(cfg, dims).to(device)
-        opt = torch.optim.AdamW(pol.parameters(), lr=cfg.optim.lr, foreach=True)
+        opt = optimizer_for(cfg, pol.parameters())
         gen = torch.Generator().manual_seed(r)
         batch = _synthetic_batch(method, dims, T_h, B, gen, device)
         runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, device=torch.device(device),
                                     sched=torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0),
-                                    ema=EMAModel(pol.parameters(), decay=cfg.optim.ema_max_decay, use_ema_warmup=True,
-                                                 power=cfg.optim.ema_power),
+                                    ema=ema_for(cfg, pol.parameters()),
                                     next_batch=(lambda b=batch: b)))
     stack = Stack(runs)
 

@@ -153,22 +153,35 @@ def _load_data(data, cfg: TrainConfig, prev: dict | None, init_ck: dict | None, 
     return arrays, meta, task, fingerprint
 
 
+def optimizer_for(cfg: TrainConfig, params) -> torch.optim.AdamW:
+    """The run's AdamW; torch's fused kernel: one pass over each of the ~200 tensors (foreach: several passes,
+    4x the time on a CPU: ``bench/profile_step.py``)."""
+    o = cfg.optim
+    return torch.optim.AdamW(params, lr=o.lr, betas=tuple(o.betas), weight_decay=o.weight_decay, fused=True)
+
+
+def ema_for(cfg: TrainConfig, params):
+    """The run's EMA of the weights (diffusers' ``EMAModel`` with diffusion policy's warm-up)."""
+    from diffusers.training_utils import EMAModel
+
+    o = cfg.optim
+    return EMAModel(params, decay=o.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0, power=o.ema_power,
+                    foreach=True)
+
+
 def _optimisation(cfg: TrainConfig, policy, total: int, init_ck: dict | None, fitted_norm: dict):
     """``(opt, lr_scheduler, ema, generator)``: AdamW, cosine schedule with warm-up, EMA (diffusion policy's
     settings), the batch/noise generator; ``--init`` loads the init checkpoint's weights and EMA."""
     from diffusers.optimization import get_scheduler
-    from diffusers.training_utils import EMAModel
 
     o = cfg.optim
     warmup = o.warmup_steps if o.warmup_steps is not None else min(500, total // 10)
-    opt = torch.optim.AdamW(policy.parameters(), lr=o.lr, betas=tuple(o.betas), weight_decay=o.weight_decay,
-                            foreach=True)   # one fused pass over the ~200 tensors (bitwise the same result)
+    opt = optimizer_for(cfg, policy.parameters())
     sched = get_scheduler("cosine", opt, num_warmup_steps=warmup, num_training_steps=total)
     gen = torch.Generator().manual_seed(cfg.seed)   # CPU: the same draws on CPU and GPU
     if init_ck is not None:
         policy.load_state_dict(init_ck["ema_model"] or init_ck["model"])
-    ema = EMAModel(policy.parameters(), decay=o.ema_max_decay, use_ema_warmup=True, inv_gamma=1.0,
-                   power=o.ema_power)
+    ema = ema_for(cfg, policy.parameters())
     if init_ck is not None:
         policy.load_state_dict(init_ck["model"])
         policy.normalizer.load_state_dict(fitted_norm)   # the widened one, not the checkpoint's

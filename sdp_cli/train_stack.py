@@ -5,8 +5,9 @@ little more than one (``bench/stacked_train.py``). Everything else of a run stay
 trainer's (:class:`sdp_cli.train.Run`): dataset, epoch order, random stream (noise, diffusion steps, Sobolev
 projections, drawn in a solo run's order), normalizer and Sobolev scale, AdamW state, LR schedule, EMA, gradient
 clipping, ``save_at`` checkpoints, metrics and checkpoints. Each member's U-Net weights are *views* into the
-stacked network, so its solo optimizer, EMA and checkpoints act on the stack directly; a member's checkpoint is a
-solo checkpoint (``load_policy``, ``sdp train --resume``), and a killed stack resumes every member.
+stacked network, and its AdamW moments and EMA weights views into the rows of
+:class:`sdp_cli.stack_optim.StackedOptimisation`'s matrices, which step every member's clipping, AdamW and EMA in
+a few whole-stack operations with its own settings; a member's checkpoint is a solo checkpoint (``load_policy``, ``sdp train --resume``), and a killed stack resumes every member.
 
 A run trained in a stack equals the same run trained alone to float32 rounding (the grouped kernels sum in another
 order; ``tests/test_train_stack.py``), whichever runs share its stack. Compatible runs (:func:`stack_key`): the same
@@ -29,6 +30,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.losses.sobolev import random_unit
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.diffusion import chunk_tangents
+from sdp_cli.stack_optim import StackedOptimisation
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes everywhere)
 DEFAULT_STACK = 8
@@ -72,6 +74,7 @@ class Stack:
                 sp.data = _member_view(stacked.data, sp.dim(), self.R, i)   # the solo weights live in the stack
                 pairs.append((sp, stacked))
             self.links.append(pairs)
+        self.optim = StackedOptimisation(runs, [stacked for _, stacked in self.links[0]])
 
     # ------------------------------------------------------------------ one step of every active member
     def _draw_and_inputs(self, run, batch: dict) -> dict:
@@ -168,24 +171,16 @@ class Stack:
                 raise SdpError(f"training diverged at step {run.step} of {run.out} (loss {res[0].item()}); "
                                "try a lower --lr or --sobolev-alpha")
         self.net.zero_grad(set_to_none=True)
-        for run in self.runs:
-            run.opt.zero_grad(set_to_none=True)
         sum(res[0] for res in results if res is not None).backward()
+        norms = self.optim.step(active)
         out = []
-        for i, (run, res) in enumerate(zip(self.runs, results)):
+        for run, res, gnorm in zip(self.runs, results, norms):
             if res is None:
                 out.append(None)
                 continue
-            for sp, stacked in self.links[i]:
-                sp.grad = _member_view(stacked.grad, sp.dim(), self.R, i)
-            params = list(run.policy.parameters())
-            gnorm = torch.nn.utils.clip_grad_norm_(params, run.cfg.optim.grad_clip)
-            run.opt.step()
             run.sched.step()
-            run.ema.step(params)
             out.append((res[0], res[1], gnorm))
         return out
-
 
 def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = "cpu",
                 log: Callable[[str], None] = print, on_step: Callable[[int], None] | None = None) -> list[Path]:
