@@ -181,19 +181,23 @@ def test_local_cluster_leaves_this_process_environment_alone(monkeypatch):
 
 
 def test_runs_of_an_experiment_on_dask_equal_local(tmp_path, cluster):
-    """`sdp pipeline NAME --run --scheduler ADDR`: the runs execute on the cluster's workers, with the same
-    results as in this process."""
+    """`sdp pipeline NAME --run --scheduler ADDR`: the runs execute on the cluster's workers, packed into a stack
+    as on the local pool, with the same results as in this process."""
     from sdp_cli.runner import run_group
 
     (tmp_path / "pipelines").mkdir()
     (tmp_path / "pipelines" / "tiny.yaml").write_text(
-        "groups: [{task: pendulum, methods: [dp], seeds: [1], n_traj: [2], epochs: 2, horizon: 8, t_a: 4, "
+        "groups: [{task: pendulum, methods: [dp], seeds: [1, 2], n_traj: [2], epochs: 2, horizon: 8, t_a: 4, "
         "n_test: 2, train: {batch_size: 8}}]\n")
     cols = ["run", "policy_cost_mean", "refined_cost_mean", "to_alone_cost_mean"]
+    logs = {"local": [], "dask": []}
     local = run_group("tiny", tmp_path / "local", executor="local", workers=1, device="cpu", root=tmp_path,
-                      log=lambda s: None)
+                      log=logs["local"].append)
     remote = run_group("tiny", tmp_path / "dask", scheduler=cluster.scheduler_address, device="cpu", root=tmp_path,
-                       log=lambda s: None)
+                       log=logs["dask"].append)
+    for lines in logs.values():
+        assert any("(2 of them in 1 stacks)" in line for line in lines), lines
     pd.testing.assert_frame_equal(local.sort_values("run")[cols].reset_index(drop=True),
                                   remote.sort_values("run")[cols].reset_index(drop=True))
+    assert len(set(remote.run)) == 2
     assert (tmp_path / "dask" / "pendulum-dp-n2-s1" / "summary.csv").is_file()
