@@ -395,6 +395,17 @@ def report_cmd(
         typer.echo(f"wrote {write_ledger(ledger)}")
 
 
+@app.command("migrate")
+def migrate_cmd(
+    runs: Annotated[Path, typer.Argument(help="Folder of runs whose evaluations were written by older code.")],
+) -> None:
+    """Bring evaluations written by older code to this code's layout, once (the old files stay as *.v1)."""
+    from sdp_cli.migrate import migrate_runs
+
+    done, current = migrate_runs(runs, log=lambda s: typer.echo(s, err=True))
+    typer.echo(f"migrated {done} evaluation(s) under {runs}; {current} already current")
+
+
 def main(argv: list[str] | None = None) -> int:
     """The ``sdp`` entry point: a usage error (unknown option, bad value, missing argument) is one line on
     stderr and exit code 2 (click's code for usage errors; errors of the work itself exit with 1)."""

@@ -48,6 +48,8 @@ def _mean(a) -> float:
 
 #: manifest file of an evaluation CSV (``eval.csv`` -> ``eval.manifest.json``) and the files it names
 MANIFEST_SUFFIX = ".manifest.json"
+#: the manifest format of this code's evaluations (:mod:`sdp_cli.migrate` brings older ones to it)
+LAYOUT = 2
 ARTIFACT_KEYS = ("rollouts", "refined", "policy", "data")
 #: constraint violation above which a rollout counts as violating (the optimizer's feasibility tolerance)
 VIOLATION_TOL = 1e-6
@@ -269,9 +271,10 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
             entries.append({"row": i, "run": row.get("run"), "iteration": int(row.get("iteration") or 0),
                             "method": row.get("method"), "task": row.get("task"), "seed": row.get("train_seed"),
                             "t_a": row.get("t_a"), "epochs": row.get("epochs"), **rel})
-        # git_rev: the code that computed the rows (from their artifacts), one value when they agree
-        revs = sorted({str(e.get("git_rev") or code_revision()) for e in entries}) or [code_revision()]
-        man = {"format": "sdp-evaluation-manifest", "format_version": 1, "eval": out.name,
+            # the code that computed the row (from its artifacts; this code where they record none)
+            entries[-1]["git_rev"] = str(entries[-1].get("git_rev") or code_revision())
+        revs = sorted({e["git_rev"] for e in entries}) or [code_revision()]
+        man = {"format": "sdp-evaluation-manifest", "format_version": LAYOUT, "eval": out.name,
                "git_rev": revs[0] if len(revs) == 1 else ",".join(revs), "entries": entries}
         text = json.dumps(man, indent=1, default=json_default).encode()
         atomic_write_bytes(manifest_path(out), lambda f: f.write(text))

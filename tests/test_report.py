@@ -105,17 +105,17 @@ def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_p
     import numpy as np
     import pandas as pd
 
-    from sdp_cli.report.runs import _backfill_older_rows
+    from sdp_cli.migrate import migrate_rows
 
     refined = tmp_path / "refined.npz"
     np.savez(refined, inst_winner=np.array([0, 0, 1]), inst_pol_cost=np.array([2.5, 1.0, 3.0]),
              inst_base_cost=np.array([2.5, 2.0, 2.0]), inst_base_converged=np.array([True, True, True]))
     old = pd.DataFrame({"policy_wins": [2, 5], "refined": [str(refined), None]})
-    got = _backfill_older_rows(old)
+    got = migrate_rows(old)
     assert got.loc[0, "policy_wins"] == 1 and got.loc[0, "policy_ties"] == 1
     assert np.isnan(got.loc[1, "policy_wins"]) and np.isnan(got.loc[1, "policy_ties"])   # no refine: unknown
     new = pd.DataFrame({"policy_wins": [4], "policy_ties": [1], "refined": [str(refined)]})
-    pd.testing.assert_frame_equal(_backfill_older_rows(new), new)                          # new rows kept as is
+    pd.testing.assert_frame_equal(migrate_rows(new), new)                          # new rows kept as is
 
 
 def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp_path):
@@ -126,7 +126,7 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
 
     from sdp_cli.data.artifacts import save_npz
     from sdp_cli.evaluate import evaluation_row
-    from sdp_cli.report.runs import _backfill_older_rows
+    from sdp_cli.migrate import migrate_rows
     from sdp_cli.rollout import evaluate_rollouts
     from sdp_cli.tasks import get_task
 
@@ -137,7 +137,7 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
     ro = save_npz(tmp_path / "r.npz", {"X": X, "U": U, "xi": xis, "cost": np.zeros(2)},
                   kind="rollout", config={}, task="pendulum", task_options={})
     old = pd.DataFrame({"violation_rate": [0.5, 0.0], "rollouts": [str(ro), None]})
-    got = _backfill_older_rows(old)
+    got = migrate_rows(old)
     assert got.loc[0, "controls_violation_rate"] == 0.5 and np.isnan(got.loc[1, "controls_violation_rate"])
     ev = evaluate_rollouts(get_task("pendulum"), X, U, xis)
     assert ev["terminal_cost"][0] < 1e-12 < ev["terminal_cost"][1] < ev["cost"][1]
@@ -149,7 +149,7 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
     diverged = save_npz(tmp_path / "div.npz", ev, kind="rollout", config={}, task="pendulum", task_options={})
     assert evaluation_row(diverged)["terminal_cost_mean"] == np.inf
     new = old.assign(controls_violation_rate=[0.25, 0.0], terminal_cost_mean=[3.0, 1.0])
-    pd.testing.assert_frame_equal(_backfill_older_rows(new), new)   # rows of this code are kept as they are
+    pd.testing.assert_frame_equal(migrate_rows(new), new)   # rows of this code are kept as they are
 
 
 def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
@@ -270,31 +270,57 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == []
 
 
-def test_loop_rows_without_n_algo_get_it_from_their_loop_config(tmp_path):
-    """Rows of loops evaluated before loops recorded ``n_algo`` read it from ``<run>/loop_config.json`` (the
-    evaluation's folder is ``<run>/it<k>/eval``), so a run partway is not taken for a finished one; rows of no
-    loop stay NaN, and a corrupt config is one clear error."""
+def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):
+    """`sdp report` refuses format-1 evaluations in one line naming `sdp migrate`; the migration adds what this
+    code computes (a loop's ``n_algo`` from ``<run>/loop_config.json``, the evaluation's folder being
+    ``<run>/it<k>/eval``; rows of no loop stay without it; each entry's ``git_rev``), keeps the old files as
+    ``*.v1`` and its other values as they were, and migrating again changes nothing."""
     import json
 
-    import numpy as np
     import pandas as pd
     import pytest
+    from typer.testing import CliRunner
 
+    from sdp_cli.cli import app
     from sdp_cli.errors import SdpError
-    from sdp_cli.report.runs import _loop_n_algo
+    from sdp_cli.evaluate import LAYOUT, manifest_path, write_evaluation
+    from sdp_cli.migrate import migrate_evaluation
+    from sdp_cli.report.runs import load_runs
 
-    run = tmp_path / "quadrotor-9-dp-n30-s0"
-    (run / "it2" / "eval").mkdir(parents=True)
-    (run / "loop_config.json").write_text(json.dumps({"task": "quadrotor-9", "n_algo": 5}))
-    (tmp_path / "lone" / "eval").mkdir(parents=True)
-    old = pd.DataFrame({"iteration": [2, 0], "source": [str(run / "it2" / "eval"), str(tmp_path / "lone" / "eval")]})
-    got = _loop_n_algo(old)
-    assert got.n_algo.iloc[0] == 5 and np.isnan(got.n_algo.iloc[1])
-    new = old.assign(n_algo=[3.0, 1.0])
-    pd.testing.assert_frame_equal(_loop_n_algo(new), new)          # rows that record it are kept as they are
-    (run / "loop_config.json").write_text("{")
+    row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 1, "n": 2, "epochs": 5,
+           "policy_cost_mean": 1.5, "success_rate": 1.0, "controls_violation_rate": 0.0, "terminal_cost_mean": 0.25}
+    runs = tmp_path / "runs"
+    loop_eval, lone = runs / "quadrotor-9-dp-n30-s0" / "it2" / "eval", runs / "lone"
+    for d, name in ((loop_eval, "quadrotor-9-dp-n30-s0"), (lone, "lone")):
+        d.mkdir(parents=True)
+        write_evaluation([{**row, "run": name, "iteration": 2}], d / "eval.csv", [{"rollouts": None}])
+        man = json.loads(manifest_path(d / "eval.csv").read_text())    # as format 1 wrote it: no entry git_rev
+        man.update(format_version=1, git_rev="abc123")
+        del man["entries"][0]["git_rev"]
+        manifest_path(d / "eval.csv").write_text(json.dumps(man))
+    (runs / "quadrotor-9-dp-n30-s0" / "loop_config.json").write_text(json.dumps({"n_algo": 5}))
+    before = (lone / "eval.csv").read_bytes()
+    with pytest.raises(SdpError, match=r"2 evaluation\(s\) under .* older code .* `sdp migrate "):
+        load_runs(runs)
+    r = CliRunner().invoke(app, ["migrate", str(runs)])
+    assert r.exit_code == 0 and "migrated 2 evaluation(s)" in r.output, r.output
+    df = load_runs(runs).set_index("run")
+    assert df.loc["quadrotor-9-dp-n30-s0", "n_algo"] == 5 and pd.isna(df.loc["lone", "n_algo"])
+    assert (df.git_rev == "abc123").all() and (df.policy_cost_mean == 1.5).all()
+    assert (lone / "eval.csv").read_bytes() == before                         # nothing to add: kept as is
+    assert (loop_eval / "eval.csv.v1").is_file() and (loop_eval / "eval.manifest.json.v1").is_file()
+    assert json.loads(manifest_path(lone / "eval.csv").read_text())["format_version"] == LAYOUT
+    snapshot = {p: p.read_bytes() for p in runs.rglob("*") if p.is_file()}
+    r = CliRunner().invoke(app, ["migrate", str(runs)])
+    assert r.exit_code == 0 and "migrated 0 evaluation(s)" in r.output and "2 already current" in r.output
+    assert {p: p.read_bytes() for p in runs.rglob("*") if p.is_file()} == snapshot
+    for name in ("eval.csv", "eval.manifest.json"):                              # format 1 again, corrupt config
+        (loop_eval / name).write_bytes((loop_eval / (name + ".v1")).read_bytes())
+    (runs / "quadrotor-9-dp-n30-s0" / "loop_config.json").write_text("{")
     with pytest.raises(SdpError, match="corrupt loop config"):
-        _loop_n_algo(old)
+        migrate_evaluation(manifest_path(loop_eval / "eval.csv"))
+    r = CliRunner().invoke(app, ["migrate", str(tmp_path / "nowhere")])
+    assert r.exit_code == 1
 
 
 def test_trajectory_titles_say_where_a_solve_did_not_converge():
