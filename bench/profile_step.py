@@ -1,11 +1,15 @@
 """Where one solo training step's time goes (issue "Many runs at once": profile first).
 
-    python bench/profile_step.py [dp|sdp] [B]
+    python bench/profile_step.py [dp|sdp] [B] [R]
 
 Times, with one torch thread, the parts of the trainer's step on a synthetic batch of UR5's shapes (A 12,
 n_obs 24, n_xi 6, ndx 12, T_h 32, the default U-Net): batch gathering, loss (the policy's ``compute_loss``),
 backward, gradient clipping, AdamW (fused), the LR schedule, EMA (diffusers' ``EMAModel``, foreach) and reading the
 metrics row; medians of 50 steps after 10 warm-up steps, printed in ms.
+
+With ``R``: instead, one step of a stack of R such runs (``sdp_cli.train_stack.Stack``, as ``sdp pipeline --run``
+trains them, on ``ur5-fixed``'s shapes), 10 steps under torch's profiler after 3 warm-up steps; prints the share
+of the CPU time of the ops that take most of it.
 """
 
 from __future__ import annotations
@@ -23,10 +27,35 @@ from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.registry import make_policy
 
 
+def stacked(method: str, B: int, R: int) -> None:
+    from torch.profiler import ProfilerActivity, profile
+
+    import sdp_cli.estimate as est
+
+    steps = []
+    real, est._median_seconds = est._median_seconds, lambda step, max_s: steps.append(step) or 1.0
+    try:
+        est.stacked_step_seconds("ur5-fixed", method, 32, B, R)   # builds the stack, hands back its step
+    finally:
+        est._median_seconds = real
+    for _ in range(3):
+        steps[0]()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(10):
+            steps[0]()
+    ev = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in ev)
+    print(f"stack of {R} {method} runs, B {B} ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, 1 thread):"
+          f" {total / 10 / 1e3:.1f} ms of CPU a step; " +
+          ", ".join(f"{e.key} {100 * e.self_cpu_time_total / total:.0f}%" for e in ev[:12]))
+
+
 def main() -> None:
     torch.set_num_threads(1)
     method = sys.argv[1] if len(sys.argv) > 1 else "sdp"
     B = int(sys.argv[2]) if len(sys.argv) > 2 else 32
+    if len(sys.argv) > 3:
+        return stacked(method, B, int(sys.argv[3]))
     T_h = 32
     dims = {"n_action": 12, "n_obs": 24, "n_xi": 6, "ndx": 12}
     cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B)

@@ -39,3 +39,21 @@ def test_solver_cache_is_bounded():
     assert S.get_solver(task, horizon=3 + S.SOLVER_CACHE_SIZE + 3, jit=False) is S.get_solver(
         task, horizon=3 + S.SOLVER_CACHE_SIZE + 3, jit=False)         # still a cache
     assert S.get_solver(task, horizon=2, jit=False) is not first       # the oldest was dropped
+
+
+def test_trainer_bench_compares_with_the_optimisation_of_38d2c04_and_puts_the_trainers_back():
+    """bench/stacked_train.py --trainer times the solo step of 38d2c04 (foreach AdamW, per-tensor EMA) beside the
+    trainer's (fused AdamW, foreach EMA), and leaves the trainer's in place afterwards."""
+    import torch
+
+    import sdp_cli.train as tr
+    from sdp_cli.policy.config import TrainConfig
+
+    cfg, params = TrainConfig.of(method="dp"), [torch.nn.Parameter(torch.zeros(3))]
+    before = (tr.optimizer_for, tr.ema_for)
+    with _bench("stacked_train")._solo_38d2c04():
+        opt, ema = tr.optimizer_for(cfg, params), tr.ema_for(cfg, params)
+        assert opt.defaults["foreach"] and not opt.defaults["fused"] and not ema.foreach
+    assert (tr.optimizer_for, tr.ema_for) == before
+    opt, ema = tr.optimizer_for(cfg, params), tr.ema_for(cfg, params)
+    assert opt.defaults["fused"] and ema.foreach
