@@ -15,6 +15,7 @@ import typer
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
                                  ToOpt, WorkersOpt, with_train_options, clean_errors, int_list, set_threads, task_help)
 from sdp_cli.errors import SdpError
+from sdp_cli.seeds import check_loop_options
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
@@ -53,7 +54,6 @@ def tasks_cmd() -> None:
 
     for name, desc in task_descriptions().items():
         typer.echo(f"{name:24s} {desc}")
-
 
 
 @app.command("collect")
@@ -222,14 +222,8 @@ def train_cmd(
     typer.echo(f"wrote {path}")
 
 
-def _loop_seed(given: dict) -> None:
-    from sdp_cli.seeds import check_loop_seed
-
-    check_loop_seed(given.get("seed", 0))   # collection seeds 1000 * seed + k must stay seeds
-
-
 @app.command("loop")
-@with_train_options(required=("method",), check=_loop_seed)
+@with_train_options(required=("method",), check=check_loop_options)
 def loop_cmd(
     task: Annotated[str, typer.Option(help=task_help())],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
@@ -297,13 +291,9 @@ def pipeline_cmd(
     if estimate + run + status > 1:
         raise SdpError("--estimate, --run and --status exclude each other")
     if status:
-        from sdp_cli.runner import run_status
+        from sdp_cli.runner import status_text
 
-        table = run_status(experiment, out or Path("runs") / experiment)
-        typer.echo(table.to_string(index=False))
-        counts = table.state.value_counts()
-        typer.echo(", ".join(f"{counts[k]} {k}" for k in ("done", "in progress", "not started", "other settings")
-                             if k in counts))
+        typer.echo(status_text(experiment, out or Path("runs") / experiment))
         return
     if estimate:
         from sdp_cli.estimate import estimate as run_estimate, format_estimate
@@ -312,7 +302,7 @@ def pipeline_cmd(
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
-        from sdp_cli.runner import run_group
+        from sdp_cli.runner import run_group, summary_text
 
         if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
             from sdp_cli.workers import die_with_parent
@@ -323,9 +313,7 @@ def pipeline_cmd(
         summary = run_group(experiment, out or Path("runs") / experiment, executor=executor, workers=workers,
                             scheduler=scheduler, only=names, restart_changed=restart_changed,
                             log=lambda s: typer.echo(s, err=True), stack=stack)
-        cols = [c for c in ("run", "iteration", "epochs", "t_a", "policy_cost_mean", "success_rate",
-                            "refined_cost_mean", "to_alone_cost_mean") if c in summary]
-        typer.echo(summary[cols].to_string(index=False) if len(summary) else "no runs")
+        typer.echo(summary_text(summary))
         return
 
     counts = select_experiment(experiment, params)
@@ -343,29 +331,10 @@ def check_task_cmd(
 ) -> None:
     """Check a task's contract before training on it: dynamics, derivatives vs finite differences, oracle
     replay, the memorizer (a perfect learner must score TO's cost) and the timing of its optimum."""
-    from sdp_cli.tasks import get_task
-    from sdp_cli.tasks.contract import model_rows, optimum_rows, pipeline_cases
+    from sdp_cli.tasks.contract import check_task
 
-    t = get_task(task)
-    if n_traj <= 0:
-        raise SdpError(f"--n-traj must be > 0, got {n_traj}")
-    pairs = pipeline_cases(task)
-    if cases:
-        try:
-            pairs = [tuple(int(v) for v in c.split(":")) for c in cases.split(",")]
-            assert all(len(p) == 2 for p in pairs)
-        except (ValueError, AssertionError):
-            raise SdpError(f"--cases must be T_h:T_a pairs separated by commas, e.g. 32:31,64:63; got {cases!r}") from None
-    rows = model_rows(t)
-    if solve:
-        rows += optimum_rows(t, pairs, n_traj)[0]
-    width = max(len(r["check"]) for r in rows)
-    for r in rows:
-        typer.echo(f"{'pass' if r['ok'] else 'FAIL'}  {r['check']:<{width}}  {r['value']:.3g} (limit {r['limit']:.3g})")
-    failed = [r["check"] for r in rows if not r["ok"]]
-    if failed:
-        raise SdpError(f"task {task!r} fails {len(failed)} of {len(rows)} checks: {'; '.join(failed)}")
-    typer.echo(f"task {task!r} passes all {len(rows)} checks")
+    n = check_task(task, n_traj, cases, solve, echo=typer.echo)
+    typer.echo(f"task {task!r} passes all {n} checks")
 
 
 @app.command("report")

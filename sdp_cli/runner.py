@@ -304,3 +304,18 @@ def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.
                  else "in progress" if d.is_dir() and any(d.iterdir()) else "not started")
         rows.append({"run": key, "iterations": f"{done}/{cfg.n_algo}", "state": state})
     return pd.DataFrame(rows)
+
+
+def status_text(name: str, out: str | os.PathLike, root: Path = Path(".")) -> str:
+    """``sdp pipeline NAME --status``: :func:`run_status`'s table and a line of counts."""
+    table = run_status(name, out, root)
+    counts = table.state.value_counts()
+    return table.to_string(index=False) + "\n" + ", ".join(
+        f"{counts[k]} {k}" for k in ("done", "in progress", "not started", "other settings") if k in counts)
+
+
+def summary_text(summary: pd.DataFrame) -> str:
+    """``sdp pipeline NAME --run``'s closing table: each run's evaluations, the main columns."""
+    cols = [c for c in ("run", "iteration", "epochs", "t_a", "policy_cost_mean", "success_rate",
+                        "refined_cost_mean", "to_alone_cost_mean") if c in summary]
+    return summary[cols].to_string(index=False) if len(summary) else "no runs"

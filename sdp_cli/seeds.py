@@ -34,3 +34,8 @@ def check_loop_seed(seed, name: str = "seed", n_algo: int = 1) -> int:
         raise SdpError(f"n_algo must be <= {LOOP_SEED_STRIDE} (collection seeds are {LOOP_SEED_STRIDE} * seed + k), "
                        f"got {n_algo}")
     return seed
+
+
+def check_loop_options(given: dict) -> None:
+    """``sdp loop``'s training options: its seed also seeds collection (``1000 * seed + k`` must stay seeds)."""
+    check_loop_seed(given.get("seed", 0))

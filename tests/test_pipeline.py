@@ -31,16 +31,20 @@ def test_every_experiment_is_a_set_of_valid_loops(name):
 
 def test_fig2_runs_and_selection(tmp_path):
     runs = loop_configs("fig2", load_experiment("fig2", root=ROOT))
-    assert len(runs) == 4 * 5 and {c.seed for c in runs.values()} == {0, 1, 2, 3, 4}   # 4 methods x 5 seeds
-    c = runs["double_pendulum-sdp-n30-s0"]
-    assert c.n_algo == 5 and c.epochs == 3000 and c.horizon == 16 and c.rollout.t_a == 4 and c.rollout.single_shooting
-    assert list(c.rollout.eval_t_a_last) == [t for t in range(1, 16) if t != 4]
+    # 4 methods x 5 seeds, twice: the loop's TO by box-FDDP (the paper's family, runs tagged -ddp) and by fatrop
+    assert len(runs) == 2 * 4 * 5 and {c.seed for c in runs.values()} == {0, 1, 2, 3, 4}
+    assert {n for n, c in runs.items() if c.to == "ddp"} == {n for n in runs if n.endswith("-ddp")}
+    assert sum(c.to == "ddp" for c in runs.values()) == 20
+    for name in ("double_pendulum-sdp-n30-s0", "double_pendulum-sdp-n30-s0-ddp"):
+        c = runs[name]
+        assert c.n_algo == 5 and c.epochs == 3000 and c.horizon == 16 and c.rollout.t_a == 4 and c.rollout.single_shooting
+        assert list(c.rollout.eval_t_a_last) == [t for t in range(1, 16) if t != 4]
     assert runs["double_pendulum-pddp_s-n30-s4"].rollout.eval_t_a_last == ()
     params = tmp_path / "params.yaml"
     params.write_text("experiment: small\nexperiment_stages: {group: {}}\n")   # as written before version 2
     counts = select_experiment("fig2", params_path=params, root=ROOT)
     written = yaml.safe_load(params.read_text())
-    assert written["experiment"] == "fig2" and counts == {"runs": 20}
+    assert written["experiment"] == "fig2" and counts == {"runs": 40}
     assert set(written) == {"experiment"}       # the settings stay in pipelines/fig2.yaml (DVC parameters)
     with pytest.raises(SdpError, match="unknown experiment 'fig9'; known: .*fig2"):
         select_experiment("fig9", params_path=params, root=ROOT)

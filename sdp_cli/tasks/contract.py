@@ -189,3 +189,36 @@ def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, in
     T = get_task(task_name).T
     cases = {(32, 31)} | {(h, a) for t, h, a in pipeline_chunk_cases(root) if t == task_name}
     return sorted((h, a) for h, a in cases if h <= T + 1)
+
+
+def parse_cases(text: str) -> list[tuple[int, int]]:
+    """``"32:31,64:63"`` -> ``[(32, 31), (64, 63)]`` (``SdpError`` otherwise)."""
+    from sdp_cli.errors import SdpError
+
+    try:
+        pairs = [tuple(int(v) for v in c.split(":")) for c in text.split(",")]
+        if all(len(p) == 2 for p in pairs):
+            return pairs
+    except ValueError:
+        pass
+    raise SdpError(f"--cases must be T_h:T_a pairs separated by commas, e.g. 32:31,64:63; got {text!r}")
+
+
+def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool = True, echo=print) -> int:
+    """``sdp check-task``: every check as a pass/fail line through ``echo``; the number of checks, or
+    ``SdpError`` naming the failed ones."""
+    from sdp_cli.errors import SdpError
+    from sdp_cli.tasks import get_task
+
+    t = get_task(name)
+    if n_traj <= 0:
+        raise SdpError(f"--n-traj must be > 0, got {n_traj}")
+    pairs = parse_cases(cases) if cases else pipeline_cases(name)
+    rows = model_rows(t) + (optimum_rows(t, pairs, n_traj)[0] if solve else [])
+    width = max(len(r["check"]) for r in rows)
+    for r in rows:
+        echo(f"{'pass' if r['ok'] else 'FAIL'}  {r['check']:<{width}}  {r['value']:.3g} (limit {r['limit']:.3g})")
+    failed = [r["check"] for r in rows if not r["ok"]]
+    if failed:
+        raise SdpError(f"task {name!r} fails {len(failed)} of {len(rows)} checks: {'; '.join(failed)}")
+    return len(rows)
