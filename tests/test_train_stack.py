@@ -37,9 +37,11 @@ def rows(run):
 
 
 def _members(method):
-    # different datasets (n_traj), seeds, epochs (so one member finishes first) and learning rates
+    # different datasets (n_traj), seeds, epochs (so one member finishes first), learning rates and the other
+    # optimisation settings each member keeps (clipping bound, weight decay, betas, EMA warm-up power)
     return [(2, TrainConfig.of(method=method, seed=0, epochs=6, lr=1e-3, **TINY)),
-            (5, TrainConfig.of(method=method, seed=1, epochs=4, lr=3e-3, save_at=[2], **TINY)),
+            (5, TrainConfig.of(method=method, seed=1, epochs=4, lr=3e-3, save_at=[2], grad_clip=0.05,
+                               weight_decay=1e-2, betas=[0.9, 0.99], ema_power=0.5, **TINY)),
             (3, TrainConfig.of(method=method, seed=2, epochs=5, lr=1e-3, sobolev_alpha=0.5, **TINY))]
 
 
