@@ -56,6 +56,26 @@ def test_committed_ledger_is_regenerated_from_the_committed_reports(tmp_path):
         "results/PAPER.md is stale: run `sdp report --ledger results/PAPER.md`"
 
 
+def test_rows_of_another_to_family_are_judged_apart(tmp_path):
+    """A report holding runs of both TO families (fig2 with box-FDDP beside fatrop): the ledger's rules read
+    each family apart (``fig2``: fatrop's rows, ``fig2/ddp``: box-FDDP's), so adding the other family's runs,
+    however they score, leaves the verdicts on fatrop's as they were."""
+    import pandas as pd
+
+    from sdp_cli.report.ledger import load_results
+
+    _copy_reports(tmp_path)
+    ref = write_ledger(tmp_path / "PAPER.md").read_text()
+    path = tmp_path / "fig2" / "all_runs.csv"
+    ms = pd.read_csv(path)
+    ddp = ms.assign(to="ddp", run=ms.run + "-ddp", policy_cost_mean=1e9, success_rate=0.0, to_alone_cost_mean=1e9)
+    pd.concat([ms, ddp], ignore_index=True).to_csv(path, index=False)
+    res = load_results(tmp_path)
+    assert len(res["fig2"]) == len(ms) and len(res["fig2/ddp"]) == len(ms)
+    assert (res["fig2/ddp"].to == "ddp").all() and not res["fig2"].run.str.endswith("-ddp").any()
+    assert write_ledger(tmp_path / "PAPER.md").read_text() == ref
+
+
 def test_every_claim_has_a_row_and_a_verdict():
     claims, _ = read_claims(RESULTS / "claims.yaml")
     assert [c["id"] for c in claims] == list(range(1, 14))

@@ -35,10 +35,17 @@ from sdp_cli.report.estimates import read_estimate
 
 def load_results(results: Path) -> dict[str, pd.DataFrame]:
     """``{experiment: all_runs.csv}``, ``{"bench/<name>": csv}`` and ``{"estimates/<experiment>": the saved
-    --estimate table}`` under ``results``."""
+    --estimate table}`` under ``results``. A report's rows whose TO family (``to``) is not fatrop's multiple
+    shooting are ``{"<experiment>/<family>": rows}`` (``fig2/ddp``: the loop with box-FDDP as its TO), so that
+    a rule judges one family at a time; rows without the column are ``ms``."""
     out = {}
     for p in sorted(results.glob("*/all_runs.csv")):
-        out[p.parent.name] = pd.read_csv(p)
+        df = pd.read_csv(p)
+        fam = df["to"].fillna("ms").astype(str) if "to" in df else pd.Series("ms", index=df.index)
+        for f in sorted(set(fam) - {"ms"}):
+            out[f"{p.parent.name}/{f}"] = df[fam == f].reset_index(drop=True)
+        if (fam == "ms").any() or df.empty:
+            out[p.parent.name] = df[fam == "ms"].reset_index(drop=True)
     for p in sorted((results / "bench").glob("*.csv")):
         out[f"bench/{p.stem}"] = pd.read_csv(p)
     for p in sorted((results / "estimates").glob("*.txt")):
