@@ -57,23 +57,34 @@ def test_committed_ledger_is_regenerated_from_the_committed_reports(tmp_path):
 
 
 def test_rows_of_another_to_family_are_judged_apart(tmp_path):
-    """A report holding runs of both TO families (fig2 with box-FDDP beside fatrop): the ledger's rules read
-    each family apart (``fig2``: fatrop's rows, ``fig2/ddp``: box-FDDP's), so adding the other family's runs,
-    however they score, leaves the verdicts on fatrop's as they were."""
+    """A report holding runs of both TO families (fig2 with box-FDDP beside fatrop): the ledger's rules judge
+    each family apart (``fig2``: fatrop's rows, ``fig2/ddp``: box-FDDP's) and a claim that needs fig2 gives both
+    (``TO by fatrop: ...; TO by box-FDDP: ...``): fatrop's part is what it was without the other family's runs,
+    however those score, and a verdict that differs is given per family."""
     import pandas as pd
 
-    from sdp_cli.report.ledger import load_results
+    from sdp_cli.report.ledger import ledger_rows, load_results
 
     _copy_reports(tmp_path)
-    ref = write_ledger(tmp_path / "PAPER.md").read_text()
+    claims, rules = read_claims(tmp_path / "claims.yaml")
+    ref = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
     path = tmp_path / "fig2" / "all_runs.csv"
     ms = pd.read_csv(path)
-    ddp = ms.assign(to="ddp", run=ms.run + "-ddp", policy_cost_mean=1e9, success_rate=0.0, to_alone_cost_mean=1e9)
+    ddp = ms.assign(to="ddp", run=ms.run + "-ddp", policy_cost_mean=1e9, success_rate=0.0)
     pd.concat([ms, ddp], ignore_index=True).to_csv(path, index=False)
     res = load_results(tmp_path)
     assert len(res["fig2"]) == len(ms) and len(res["fig2/ddp"]) == len(ms)
     assert (res["fig2/ddp"].to == "ddp").all() and not res["fig2"].run.str.endswith("-ddp").any()
-    assert write_ledger(tmp_path / "PAPER.md").read_text() == ref
+    got = {r["id"]: r for r in ledger_rows(res, claims, rules)}
+    for c in claims:
+        a, b = ref[c["id"]], got[c["id"]]
+        if not any("fig2" in need.split("|") for need in c["needs"]):
+            assert (a["ours"], a["verdict"]) == (b["ours"], b["verdict"]), c["id"]        # no fig2: as it was
+            continue
+        assert b["ours"].startswith(f"TO by fatrop: {a['ours'] or '—'}; TO by box-FDDP: "), c["id"]
+        assert b["verdict"] == a["verdict"] or b["verdict"].startswith(f"{a['verdict']} (fatrop); "), c["id"]
+    assert got[5]["verdict"] == f"{ref[5]['verdict']} (fatrop); not reproduced (box-FDDP)"   # no policy solves it
+    assert "fig2 double_pendulum box-FDDP: " in got[13]["ours"].split("; TO by box-FDDP: ")[1]
 
 
 def test_every_claim_has_a_row_and_a_verdict():

@@ -14,7 +14,9 @@ verdicts of :mod:`sdp_cli.report.ledger.verdicts`, the same for every claim:
   ``r - 1 >= (r_paper - 1) / 2``; *partly* with at least a tenth of it; otherwise *not reproduced*;
   a range claim ("2-20x") is reproduced from its lower end;
 - a claim whose experiment has no report is *not run*, with the estimate from ``claims.yaml``;
-  one with only part of its runs says *partly* and which part is missing.
+  one with only part of its runs says *partly* and which part is missing;
+- a report with runs of two TO families (``to``: fatrop's multiple shooting, box-FDDP, the paper's family) is
+  judged per family, and a claim that needs it gives both, with one verdict where they agree.
 
 The diffusion policies' rows are those at the T_a evaluated at every loop iteration (the training
 T_a); "solves" means a success rate of at least 50% over the test instances.
@@ -69,19 +71,58 @@ class Params(dict):
         raise SdpError(f"claim {self.cid}: results/claims.yaml gives no {key!r} (in its params or the shared rules)")
 
 
+#: how the ledger names a TO family (``to`` of the evaluations); ``ms`` is the main one, judged first
+FAMILIES = {"ms": "fatrop", "ddp": "box-FDDP"}
+
+
+def _shared(key: str) -> bool:
+    return key.startswith(("bench/", "estimates/"))
+
+
+def _family_results(res: dict[str, pd.DataFrame], fam: str) -> dict[str, pd.DataFrame]:
+    """``res`` as a rule sees the TO family ``fam``: each report's rows of that family under the report's name
+    (reports without such rows absent), the bench results and estimates as they are."""
+    out = {k: v for k, v in res.items() if _shared(k)}
+    out.update({k[: -len(fam) - 1]: v for k, v in res.items() if not _shared(k) and k.endswith("/" + fam)})
+    return out
+
+
+def _renamed(row: Row, fam: str) -> Row:
+    """A family's row: the rules call the loop's TO (``to_alone_*``, ``refined_*``) "multiple shooting", which
+    in its rows is the family's solver."""
+    name = FAMILIES.get(fam, fam)
+    return Row(*(x.replace("multiple shooting", name) for x in (row.ours, row.verdict, row.detail)))
+
+
+def _judge(c: dict, res: dict, rules: dict | None) -> Row:
+    cid = int(c["id"])
+    if not _available(c["needs"], res):
+        return Row("", "not run", c.get("not_run", ""))
+    try:
+        return RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {})}))
+    except (KeyError, AttributeError) as e:    # a column missing from an older report
+        raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
+
+
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
     """One row per claim: its rule (``rule:``, from :data:`RULES`) on ``res`` with the claim's ``params`` over the
-    shared ``rules``, or *not run* when an experiment it ``needs`` has no report."""
+    shared ``rules``, or *not run* when an experiment it ``needs`` has no report. Where the reports it needs
+    also hold runs of another TO family (:func:`load_results`), the rule judges each family apart and the row
+    gives both (``TO by fatrop: ...; TO by box-FDDP: ...``), with one verdict where they agree."""
+    others = sorted({k.rsplit("/", 1)[1] for k in res if "/" in k and not _shared(k)})
     rows = []
     for c in claims:
-        cid = int(c["id"])
-        if not _available(c["needs"], res):
-            row = Row("", "not run", c.get("not_run", ""))
-        else:
-            try:
-                row = RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {})}))
-            except (KeyError, AttributeError) as e:    # a column missing from an older report
-                raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
+        row = _judge(c, res, rules)
+        more = [(f, _renamed(_judge(c, _family_results(res, f), rules), f)) for f in others
+                if _available(c["needs"], _family_results(res, f))
+                and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
+        if more:
+            parts = [("ms", row)] + more
+            name = lambda f: FAMILIES.get(f, f)   # noqa: E731
+            row = Row("; ".join(f"TO by {name(f)}: {r.ours or '—'}" for f, r in parts),
+                      parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
+                      "; ".join(f"{r.verdict} ({name(f)})" for f, r in parts),
+                      " ".join(f"TO by {name(f)}: {r.detail.rstrip('.')}." for f, r in parts if r.detail))
         rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail})
     return rows
 
