@@ -346,6 +346,7 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
              progress: bool = False) -> pd.DataFrame:
     """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
     ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
+    from sdp_cli import RESULTS_VERSION
     from sdp_cli.evaluate import is_timing_column
     from sdp_cli.train import train
 
@@ -368,7 +369,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
                   log=lambda s: None)
         log(f"[it{k}] evaluate on {cfg.rollout.n_test} test instances")
         df = run_iteration_eval(policy_dir, d / "eval", cfg, {"run": out.name, "iteration": k, "loop_seed": cfg.seed,
-                                                                   "n_algo": cfg.n_algo},
+                                                                   "n_algo": cfg.n_algo,
+                                                                   "results_version": RESULTS_VERSION},
                                 log,
                                 last=k == cfg.n_algo - 1, progress=progress)
         tables.append(df)

@@ -501,3 +501,21 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     table2c(dp2, "double_pendulum", tmp_path)
     t = pd.read_csv(tmp_path / "table2c_double_pendulum.csv").set_index("method")
     assert t.loc["sdp-to-ddp", "TO alone cost"] == 45.2 and t.loc["sdp-to-ms", "TO alone cost"] == 31.5
+
+
+def test_readme_names_the_results_version_of_each_runs_rows():
+    """Loops record the results version (what runs measure) in their rows since version 4: the README's revision
+    table gives it per task, method and revision; rows of older runs say it was not recorded; reports whose
+    rows have none keep the table without the column."""
+    import pandas as pd
+
+    from sdp_cli.report.make import revision_lines
+
+    rows = pd.DataFrame({"task": ["pendulum"] * 3, "method": ["sdp", "sdp", "dp"], "train_seed": [0, 1, 0],
+                         "iteration": [0, 0, 0], "git_rev": ["abc", "abc", "old"], "results_version": [4, 4, None]})
+    lines = revision_lines(rows)
+    assert "| task | method | seeds | iterations | revision | results version |" in lines
+    assert "| pendulum | sdp | 0,1 | 0 | `abc` | 4 |" in lines
+    assert "| pendulum | dp | 0 | 0 | `old` | not recorded (< 4) |" in lines
+    old = revision_lines(rows.drop(columns="results_version"))
+    assert "| task | method | seeds | iterations | revision |" in old and "| pendulum | dp | 0 | 0 | `old` |" in old

@@ -152,12 +152,18 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
     revs = run_revisions(df)
     if revs.empty:
         return []
-    lines = ["", "## Code revisions of the runs (from the evaluation manifests)", "",
-             "| task | method | seeds | iterations | revision |", "|---|---|---|---|---|"]
-    for (task, method, rev), g in revs.groupby(["task", "method", "git_rev"]):
+    versions = "results_version" in revs
+    lines = ["", "## Code revisions of the runs (from the evaluation manifests)", ""]
+    if versions:   # what the runs measure (sdp_cli.RESULTS_VERSION); not recorded by runs before version 4
+        revs = revs.assign(results_version=revs.results_version.map(
+            lambda v: "not recorded (< 4)" if pd.isna(v) else str(int(v))))
+        lines += ["| task | method | seeds | iterations | revision | results version |", "|---|---|---|---|---|---|"]
+    else:
+        lines += ["| task | method | seeds | iterations | revision |", "|---|---|---|---|---|"]
+    for key, g in revs.groupby(["task", "method", "git_rev"] + (["results_version"] if versions else [])):
         its = _ints(g.iteration)
         seeds = _ints(g.train_seed) or "n/a"
-        lines.append(f"| {task} | {method} | {seeds} | {its} | `{rev}` |")
+        lines.append(f"| {key[0]} | {key[1]} | {seeds} | {its} | `{key[2]}` |" + (f" {key[3]} |" if versions else ""))
     return lines
 
 

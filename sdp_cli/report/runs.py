@@ -70,6 +70,10 @@ def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -
 
 def run_revisions(df: pd.DataFrame) -> pd.DataFrame:
     """The code revision of each evaluation (from its manifest): ``(task, method, train_seed, iteration,
-    git_rev)`` rows (a resumed loop may span several commits; seeds may be run by different ones)."""
+    git_rev)`` rows (a resumed loop may span several commits; seeds may be run by different ones), and its
+    ``results_version`` (:data:`sdp_cli.RESULTS_VERSION`, recorded by loops since version 4) where the rows
+    have one."""
     cols = ["task", "method", "train_seed", "iteration", "git_rev"]
+    if "results_version" in df and df.results_version.notna().any():
+        cols.append("results_version")
     return df[cols].drop_duplicates().reset_index(drop=True) if len(df) else pd.DataFrame(columns=cols)
