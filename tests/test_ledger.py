@@ -85,6 +85,12 @@ def test_rows_of_another_to_family_are_judged_apart(tmp_path):
         assert b["verdict"] == a["verdict"] or b["verdict"].startswith(f"{a['verdict']} (fatrop); "), c["id"]
     assert got[5]["verdict"] == f"{ref[5]['verdict']} (fatrop); not reproduced (box-FDDP)"   # no policy solves it
     assert "fig2 double_pendulum box-FDDP: " in got[13]["ours"].split("; TO by box-FDDP: ")[1]
+    partway = ddp[ddp.iteration < ddp.iteration.max()]                     # a re-run filling up: no run finished
+    pd.concat([ms, partway], ignore_index=True).to_csv(path, index=False)
+    got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
+    assert got[5]["ours"].endswith("; TO by box-FDDP: partway (no run finished yet)")
+    assert got[5]["verdict"] == f"{ref[5]['verdict']} (fatrop); not run (box-FDDP)"
+    assert "TO by box-FDDP: runs not finished (left out): " in got[5]["detail"]
 
 
 def test_every_claim_has_a_row_and_a_verdict():

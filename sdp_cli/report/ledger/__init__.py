@@ -32,6 +32,7 @@ from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
 from sdp_cli.report.ledger.rules import RULES, Row
 from sdp_cli.report.ledger.verdicts import pct_text
+from sdp_cli.report.rows import last_iteration, unfinished
 from sdp_cli.report.estimates import read_estimate
 
 
@@ -104,6 +105,15 @@ def _judge(c: dict, res: dict, rules: dict | None) -> Row:
         raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
 
 
+def _judge_family(c: dict, res: dict, rules: dict | None) -> Row:
+    """:func:`_judge` on a TO family's reports, which may hold only runs partway (a re-run filling up): *not
+    run* until one of its runs has reached its loop's final iteration, naming the runs partway."""
+    reports = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
+    if reports and all(last_iteration(d).empty for d in reports):
+        return Row("partway (no run finished yet)", "not run", "; ".join(u for u in map(unfinished, reports) if u))
+    return _judge(c, res, rules)
+
+
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
     """One row per claim: its rule (``rule:``, from :data:`RULES`) on ``res`` with the claim's ``params`` over the
     shared ``rules``, or *not run* when an experiment it ``needs`` has no report. Where the reports it needs
@@ -113,7 +123,7 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
     rows = []
     for c in claims:
         row = _judge(c, res, rules)
-        more = [(f, _renamed(_judge(c, _family_results(res, f), rules), f)) for f in others
+        more = [(f, _renamed(_judge_family(c, _family_results(res, f), rules), f)) for f in others
                 if _available(c["needs"], _family_results(res, f))
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
         if more:
