@@ -36,11 +36,15 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy.registry import get_method
 
 
-def to_reference(task: str) -> tuple[float, float]:
-    """Reference (multiple shooting, single shooting) seconds per solve of ``task`` (:attr:`Task.reference_solve_s`)."""
+def to_reference(task: str, to: str = "ms") -> tuple[float, float]:
+    """Reference seconds per solve of ``task``: (the loop's TO, single shooting); the loop's TO is multiple
+    shooting (:attr:`Task.reference_solve_s`) or, ``to="ddp"``, box-FDDP where the task gives its time
+    (:attr:`Task.reference_ddp_s`)."""
     from sdp_cli.tasks import get_task
 
-    return tuple(get_task(task).reference_solve_s)
+    t = get_task(task)
+    ms, ss = t.reference_solve_s
+    return ((t.reference_ddp_s or ms) if to == "ddp" else ms), ss
 
 
 @dataclass
@@ -240,7 +244,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
             rows[run]["train_cpu_s"] = longest * stacked[key] / len(job)   # (GPU columns: solo steps, not stacked)
     for run, cfg in runs.items():
         r, task = rows[run], get_task(cfg.task)
-        ms, ss = to_reference(cfg.task)
+        ms, ss = to_reference(cfg.task, cfg.to)
         st = next(s for s in train if s.run == run)
         # collection: the naive guess at iteration 0, then policy guess and naive guess (ArgminCost)
         r["to_s"] += sum(cfg.n_traj_at(k) * ms * (1 if k == 0 else 2) for k in range(cfg.n_algo))

@@ -150,3 +150,14 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     r = CliRunner().invoke(app, ["pipeline", "small", "--estimate", "--workers", "3"])
     assert r.exit_code == 0, r.output
     assert "with 3 parallel workers" in r.output and sorted(p.name for p in tmp_path.rglob("*")) == before
+
+
+def test_estimate_times_a_loops_to_by_its_family():
+    """`--estimate` charges a loop's TO at its family's reference time: box-FDDP's where the task gives one
+    (results/tasks/TO_alone.md), multiple shooting's otherwise; single shooting's either way."""
+    from sdp_cli.estimate import to_reference
+
+    assert to_reference("double_pendulum") == (0.010, 0.155)
+    assert to_reference("double_pendulum", "ddp") == (0.045, 0.155)
+    assert to_reference("ur5-fixed", "ddp")[0] > to_reference("ur5-fixed")[0]
+    assert to_reference("quadrotor-0", "ddp") == to_reference("quadrotor-0")      # no DDP time: fatrop's

@@ -241,6 +241,9 @@ class Task(PolicyConventions, ABC):
     #: seconds per TO solve from the naive guess, (fatrop multiple shooting, IPOPT single shooting), used
     #: by ``sdp pipeline --estimate`` (means of results/tasks/TO_alone.md for the built-in tasks)
     reference_solve_s: tuple[float, float] = (0.010, 0.155)
+    #: seconds per box-FDDP solve from the naive guess (``--to ddp``; batch-amortized, results/tasks/TO_alone.md),
+    #: for the estimate of loops whose TO is the DDP; None: the multiple-shooting time stands in
+    reference_ddp_s: float | None = None
 
     def path_points(self, X: np.ndarray) -> np.ndarray:
         """3D points of a trajectory for plots: (T+1, nx) -> (T+1, 3). Default: the last frame."""

@@ -72,6 +72,7 @@ class PendulumTask(Task):
             raise SdpError(f"dt must be > 0, got {dt}")
         self.name = name or ("pendulum" if n_links == 1 else "double_pendulum")
         self.reference_solve_s = (0.002, 0.18) if n_links == 1 else (0.010, 0.155)   # results/tasks/TO_alone.md
+        self.reference_ddp_s = 0.002 if n_links == 1 else 0.045
         self.n_links, self.T, self.dt, self.init_spread = n_links, int(T), float(dt), float(init_spread)
         self.actuated = actuated
         self.model = create_pendulum(n_links)

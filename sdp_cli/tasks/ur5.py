@@ -87,6 +87,7 @@ class Ur5Task(StartGoalTask):
 
     action = "x"
     reference_solve_s = (0.108, 50.3)   # results/tasks/TO_alone.md (single shooting: its 1000-iteration cap)
+    reference_ddp_s = 1.6               # box-FDDP on ur5-fixed (ur5-rinit: 3.0)
     compile_family = "ur5"  # the 4 variants differ only in how xi is sampled: one compiled OCP
 
     def __init__(self, r_init: bool = False, r_tgt: bool = False, T: int = 200, dt: float = 0.01):
