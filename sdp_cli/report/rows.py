@@ -70,7 +70,7 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
     if "to" in df:
-        fam = df["to"].fillna("ms").astype(str)
+        fam = df["to"].astype(object).where(df["to"].notna(), "ms").astype(str)
         mixed = fam.groupby(df.task).transform("nunique") > 1
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-to-" + fam[mixed]
     return df

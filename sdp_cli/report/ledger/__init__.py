@@ -44,7 +44,7 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     out = {}
     for p in sorted(results.glob("*/all_runs.csv")):
         df = pd.read_csv(p)
-        fam = df["to"].fillna("ms").astype(str) if "to" in df else pd.Series("ms", index=df.index)
+        fam = df["to"].astype(object).where(df["to"].notna(), "ms").astype(str) if "to" in df else pd.Series("ms", index=df.index)
         for f in sorted(set(fam) - {"ms"}):
             out[f"{p.parent.name}/{f}"] = df[fam == f].reset_index(drop=True)
         if (fam == "ms").any() or df.empty:

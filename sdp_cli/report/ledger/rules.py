@@ -101,7 +101,7 @@ def table2c(res, p) -> Row:
     v = [ratio_verdict(r_ss, p["speedup"][0] / p["speedup"][1], p["keep"], p["partly"]),
          ratio_verdict(degr, p["degradation"][0] / p["degradation"][1], p["keep"], p["partly"])]
     verdict = combine(v)
-    return Row(ours, verdict, f"speed-up verdict (single shooting, the paper's solver family): {v[0]}; "
+    return Row(ours, verdict, f"speed-up verdict (single shooting): {v[0]}; "
                               f"degradation verdict: {v[1]}; times are per instance on our CPU")
 
 
