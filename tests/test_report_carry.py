@@ -209,3 +209,13 @@ def test_readme_tables_name_the_variant_each_run_is_drawn_as(tmp_path, monkeypat
     make_report(runs, out, "exp", keep_missing=True)
     readme = (out / "README.md").read_text()
     assert "| pendulum | sdp-K2 | 1 |" in readme and "| pendulum | sdp | " not in readme
+
+
+def test_run_less_rows_of_a_table_with_runs_stay_without_one_when_their_method_has_several(tmp_path):
+    """A table whose run column holds names and blanks (read as a string column): run-less rows of a method
+    with several carried runs stay run-less (re-reporting fig2 over its box-FDDP runs once failed here)."""
+    pd.DataFrame({"method": ["dp", "dp", "dp"], "run": ["dp-x-s0", None, None],
+                  "iterations": [1, 2, 3]}).to_csv(tmp_path / "t.csv", index=False)
+    c = Carried(tmp_path, frozenset({"dp-x-s0", "dp-x-s1"}))
+    rows = c.rows("t.csv", "q", pd.DataFrame({"method": "dp", "run": ["dp-x-s0", "dp-x-s1"]}))
+    assert list(rows.iterations) == [1, 2, 3] and list(rows.run[:1]) == ["dp-x-s0"] and rows.run[1:].isna().all()

@@ -66,7 +66,8 @@ class Carried:
         runs = drawn.groupby("method").run
         only = runs.first()[runs.nunique() == 1]
         untagged = rows.run.isna()
-        rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only)
+        rows["run"] = rows.run.astype(object)      # (a column read with no value at all is not a string column)
+        rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only).astype(object)
         # each carried run's rows under the name its method is drawn by now
         rows["method"] = rows.run.map(drawn.groupby("run").method.first()).fillna(rows.method)
         return rows
