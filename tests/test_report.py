@@ -466,6 +466,7 @@ def test_a_new_figure_is_one_registry_entry(tmp_path, monkeypatch):
     monkeypatch.setattr(figures, "FIGURES", extra[:-1])
     make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
     assert not (out / "toy_pendulum.csv").exists()        # stale: the registry no longer has it
+    assert (out / ".superseded" / "toy_pendulum.csv").is_file()    # moved aside, not deleted
 
 
 def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_path):

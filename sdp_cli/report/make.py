@@ -113,8 +113,9 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
 
 
 def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
-    """Delete report files an earlier report left in ``out`` that this one did not write
-    (e.g. a task or a figure whose runs are gone), so the folder shows this report only."""
+    """Move report files an earlier report left in ``out`` that this one did not write (e.g. a task or a figure
+    whose runs are gone, a series renamed) into ``out/.superseded/`` (git-ignored), so the folder shows this
+    report only and nothing is deleted; returns their new paths."""
     keep = {p.resolve() for p in written}
     from sdp_cli.report.figures import FIGURES, REPORT_FILE
 
@@ -122,9 +123,12 @@ def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
     for sub in ["curves"] + [f.name for f in FIGURES if f.folder]:    # the dvc plots series are all the report's
         if (out / sub).is_dir():
             stale += [p for p in (out / sub).iterdir() if p.is_file() and p.resolve() not in keep]
+    moved = []
     for p in stale:
-        p.unlink()
-    return stale
+        dest = out / ".superseded" / p.relative_to(out)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        moved.append(p.replace(dest))
+    return moved
 
 
 def _top_index(results: Path) -> Path:
