@@ -469,13 +469,16 @@ def test_a_new_figure_is_one_registry_entry(tmp_path, monkeypatch):
     assert (out / ".superseded" / "toy_pendulum.csv").is_file()    # moved aside, not deleted
 
 
-def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_path):
+def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_path, monkeypatch):
     """A task evaluated with the multiple-shooting TO and with the DDP (`sdp loop --to ddp`): the methods are
     drawn per family (`sdp-to-ddp`), each family's TO alone is its own line and table row; a task with one
-    family keeps the plain names (the committed reports are unchanged)."""
+    family keeps the plain names (the committed reports are unchanged). Fig. 1 drew one TO-alone line averaging
+    both families (33.8 between fatrop's 31.7 and box-FDDP's 44.3), and Fig. 2b called box-FDDP's iterations
+    "multiple shooting"."""
     import pandas as pd
 
-    from sdp_cli.report.figures.paper import fig2a, table2c
+    from sdp_cli.report.figures import paper
+    from sdp_cli.report.figures.paper import fig1, fig2a, fig2b, table2c
     from sdp_cli.report.figures.style import COLORS, method_label
     from sdp_cli.report.rows import family_of, method_variants, plain_method
 
@@ -502,6 +505,25 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     table2c(dp2, "double_pendulum", tmp_path)
     t = pd.read_csv(tmp_path / "table2c_double_pendulum.csv").set_index("method")
     assert t.loc["sdp-to-ddp", "TO alone cost"] == 45.2 and t.loc["sdp-to-ms", "TO alone cost"] == 31.5
+    figs = []
+    monkeypatch.setattr(paper, "save_fig", lambda fig, path: figs.append(fig) or path)
+    fig1(dp2, "double_pendulum", tmp_path)      # a TO-alone line per family, not one mixing both
+    f1 = pd.read_csv(tmp_path / "fig1_double_pendulum.csv").set_index("method")
+    assert f1.loc["dp-to-ddp", "to_alone_mean"] == 45.2 and f1.loc["dp-to-ms", "to_alone_mean"] == 31.5
+    lines = {ln.get_label(): ln.get_ydata()[0] for ln in figs[0].axes[0].lines if ln.get_label().startswith("TO")}
+    assert lines == {"TO alone (fatrop)": 31.5, "TO alone (box-FDDP)": 45.2}
+
+    class Carried:      # an earlier report's per-instance iterations (the runs' files gone)
+        def rows(self, name, task, last):
+            return pd.DataFrame([{"solver": s, "method": m, "guess": g, "iterations": 7, "run": m + "-s0"}
+                                 for s in ("multiple shooting", "single shooting") for m in ("sdp-to-ms", "sdp-to-ddp")
+                                 for g in ("policy", "naive")])
+    fig2b(dp2.assign(refined=None), "double_pendulum", tmp_path, Carried())
+    b = pd.read_csv(tmp_path / "fig2b_double_pendulum.csv")     # the loop's TO named by its family
+    assert set(zip(b.solver, b.method)) == {("multiple shooting", "sdp-to-ms"), ("box-FDDP", "sdp-to-ddp"),
+                                            ("single shooting", "sdp-to-ms"), ("single shooting", "sdp-to-ddp")}
+    assert [a.get_xlabel() for a in figs[-1].axes] == ["TO iterations, multiple shooting", "TO iterations, box-FDDP",
+                                                       "TO iterations, single shooting"]
 
 
 def test_readme_names_the_results_version_of_each_runs_rows():
@@ -520,3 +542,38 @@ def test_readme_names_the_results_version_of_each_runs_rows():
     assert "| pendulum | dp | 0 | 0 | `old` | not recorded (< 4) |" in lines
     old = revision_lines(rows.drop(columns="results_version"))
     assert "| task | method | seeds | iterations | revision |" in old and "| pendulum | dp | 0 | 0 | `old` |" in old
+
+
+def test_a_report_interrupted_midway_leaves_the_earlier_one_as_it_was(tmp_path, monkeypatch):
+    """Until 2026-11-27 `sdp report` wrote into its folder file by file: an error or Ctrl-C after fig1 left a
+    folder mixing two reports (a new all_runs.csv and fig1 beside the old fig2a and README). Every byte of the
+    earlier report must stay until the new one is complete, and no staging folder is left behind."""
+    import shutil
+    from pathlib import Path
+
+    from sdp_cli.report import figures
+    from sdp_cli.report.make import make_report
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "small"
+    shutil.copytree(root / "results" / "small", out)
+    for p in out.glob("fig1_*.csv"):       # an earlier report that the new one will differ from
+        p.write_text(p.read_text() + "earlier\n")
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    (tmp_path / "empty").mkdir()
+    monkeypatch.chdir(tmp_path)
+
+    def broken(rows, task, out, carried):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figures, "FIGURES", figures.FIGURES[:3] + (figures.Figure("broken", broken),)
+                        + figures.FIGURES[3:])
+    with pytest.raises(KeyboardInterrupt):
+        make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "small"]      # no staging folder left
+    monkeypatch.setattr(figures, "FIGURES", figures.FIGURES[:3] + figures.FIGURES[4:])
+    written = make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
+    assert all(p.is_file() and out in p.parents for p in written)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "small"]

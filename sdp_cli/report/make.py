@@ -64,8 +64,52 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     output keeps, are ignored (and counted in the log).
 
     ``keep_missing``: extend the report already in ``out`` instead of replacing it: the rows (and per-run
-    tables) of runs with no evaluation under ``runs`` are kept from it (:mod:`sdp_cli.report.carry`)."""
+    tables) of runs with no evaluation under ``runs`` are kept from it (:mod:`sdp_cli.report.carry`).
+
+    All or nothing: the files are written into a hidden folder beside ``out`` and moved into ``out`` once every
+    one is written, so an error or an interrupt midway leaves the earlier report as it was."""
+    import shutil
+    import tempfile
+
     runs, out = Path(runs), Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.report-", dir=out.parent))
+    try:
+        files, df = _write(runs, out, stage, experiment, log, keep_missing)
+        written = _publish(stage, out, files)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)     # this call's own staging folder, empty once published
+    if metrics is not None:
+        from sdp_cli.report.figures.curves import metrics_summary, write_metrics
+
+        loop_rows = pd.concat([loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
+        write_metrics(metrics_summary(loop_rows), Path(metrics))
+    if out.resolve().parent.name == "results":
+        written.append(_top_index(out.resolve().parent))
+    return written
+
+
+def _publish(stage: Path, out: Path, written: list[Path]) -> list[Path]:
+    """Move the files of ``written`` that lie in ``stage`` to the same place in ``out`` (each an atomic rename;
+    the others are earlier report files ``out`` keeps), then move what ``out`` holds of an earlier report and
+    this one did not write aside (:func:`_remove_stale`); returns the paths in ``out``."""
+    out.mkdir(exist_ok=True)
+    final = []
+    for p in written:
+        if p.resolve().is_relative_to(stage.resolve()):
+            dest = out / p.resolve().relative_to(stage.resolve())
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            p.replace(dest)
+            p = dest
+        final.append(p)
+    _remove_stale(out, final)
+    return final
+
+
+def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
+           keep_missing: bool) -> tuple[list[Path], pd.DataFrame]:
+    """The report's files, written into ``stage`` (the earlier report read from ``out``): their paths (a kept
+    earlier file: its path in ``out``) and the rows reported."""
     df = load_runs(runs, log=log, allow_empty=keep_missing)
     kept: frozenset[str] = frozenset()
     if keep_missing:
@@ -80,7 +124,7 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
         if df.empty:
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
                            f"run `dvc repro` first")
-    written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), out / "all_runs.csv")]
+    written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), stage / "all_runs.csv")]
     from sdp_cli.report.figures import FIGURES
     from sdp_cli.report.figures.curves import training_curves
 
@@ -94,22 +138,14 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     kept_traj = [t for t in sorted(bdf.task.dropna().unique()) if carried.kept_traj(bdf, t)]
     for fig in (f for f in FIGURES if f.rows == "raw"):        # the raw rows' figures first, then per task
         for task in sorted(df.task.dropna().unique()):
-            written += fig.draw(df, task, out, None)
+            written += fig.draw(df, task, stage, None)
     for task in sorted(fdf.task.dropna().unique()):
         for fig in (f for f in FIGURES if f.rows != "raw"):
             d, c = rows[fig.rows]
-            written += fig.draw(d, task, out, c)
-    written += training_curves(df, out) + [p for r in sorted(kept) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
-    if metrics is not None:
-        from sdp_cli.report.figures.curves import metrics_summary, write_metrics
-
-        loop_rows = pd.concat([loop_t_a(df[df.task == t]) for t in sorted(df.task.dropna().unique())])
-        write_metrics(metrics_summary(loop_rows), Path(metrics))
-    written.append(_index(fdf, runs, out, experiment, written, carried_lines(fdf, carried, kept_traj)))
-    _remove_stale(out, written)
-    if out.resolve().parent.name == "results":
-        written.append(_top_index(out.resolve().parent))
-    return written
+            written += fig.draw(d, task, stage, c)
+    written += training_curves(df, stage) + [p for r in sorted(kept) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
+    written.append(_index(fdf, runs, out, experiment, written, carried_lines(fdf, carried, kept_traj), stage))
+    return written, df
 
 
 def _remove_stale(out: Path, written: list[Path]) -> list[Path]:
@@ -172,8 +208,10 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
-           carried: list[str] = ()) -> Path:
-    """README.md of the report; ``df``: its rows with methods named as drawn (:func:`method_variants`)."""
+           carried: list[str] = (), stage: Path | None = None) -> Path:
+    """README.md of the report in ``out``, written into ``stage`` (default ``out``); ``df``: its rows with methods
+    named as drawn (:func:`method_variants`); ``files``: the report's, in ``stage`` or kept in ``out``."""
+    stage = out if stage is None else stage
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", _ints),
         n_traj=("n_traj", _ints),
@@ -195,13 +233,13 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     lines += list(carried)
     lines += revision_lines(df)
     lines += ["", "## Files", ""]
-    lines += [f"- `{p.name}`" for p in files if p.parent == out]
-    n_curves = sum(1 for p in files if p.parent == out / "curves")
-    n_loop = sum(1 for p in files if p.parent == out / "loop")
+    lines += [f"- `{p.name}`" for p in files if p.parent in (out, stage)]
+    n_curves = sum(1 for p in files if p.parent in (out / "curves", stage / "curves"))
+    n_loop = sum(1 for p in files if p.parent in (out / "loop", stage / "loop"))
     if n_curves or n_loop:
         lines.append(f"- `curves/` ({n_curves} files: training curves per run and iteration, thinned to <= 500 rows) "
                      f"and `loop/` ({n_loop} files: costs and success per iteration, per task and method): data "
                      f"series for `dvc plots show`")
     if (out / "NOTES.md").is_file():
         lines += ["", "Notes on this run (how it was run, what did not finish): [NOTES.md](NOTES.md)."]
-    return atomic_write_bytes(out / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))
+    return atomic_write_bytes(stage / "README.md", lambda f: f.write(("\n".join(lines) + "\n").encode()))

@@ -70,10 +70,22 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
     if "to" in df:
-        fam = df["to"].astype(object).where(df["to"].notna(), "ms").astype(str)
+        fam = to_family(df)
         mixed = fam.groupby(df.task).transform("nunique") > 1
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-to-" + fam[mixed]
     return df
+
+
+#: how reports name a TO family (``to`` of the evaluations); ``ms`` is the main one
+TO_FAMILIES = {"ms": "fatrop", "ddp": "box-FDDP"}
+
+
+def to_family(df: pd.DataFrame) -> pd.Series:
+    """Each row's TO family, the loop's TO (column ``to``: ``ddp`` for box-FDDP); ``ms`` (fatrop's multiple
+    shooting) where the column is empty or absent (runs made before the DDP solver existed)."""
+    if "to" not in df:
+        return pd.Series("ms", index=df.index, dtype=object)
+    return df["to"].astype(object).where(df["to"].notna(), "ms").astype(str)
 
 
 def split_family(method: str) -> tuple[str, str | None]:

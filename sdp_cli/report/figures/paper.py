@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.rows import family_of, loop_t_a, mean_ci
+from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci
 from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
                                   pyplot, save_csv, save_fig, save_md)
 
@@ -52,13 +52,14 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     if "success_rate" in d:
         succ = _agg(d, by, "success_rate").rename(columns={"mean": "success_mean", "ci95": "success_ci95"})
         tab = tab.merge(succ.drop(columns="n_seeds"), on=by, how="left")
-    to = mean_ci(d["to_alone_cost_mean"]) if "to_alone_cost_mean" in d else (np.nan, np.nan, 0)
-    tab["to_alone_mean"] = to[0]
+    to_by = _to_alone_by_family(d)      # one TO-alone line per TO family of the drawn runs
+    tab["to_alone_mean"] = tab.method.map(family_of).map(to_by).astype(float)
+    tos = [v for v in to_by.values() if np.isfinite(v)]
     plt = pyplot()
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
-    high = max(float(finite.max()) if len(finite) else 1.0, to[0] if np.isfinite(to[0]) else 0)
-    low = min(float(finite.min()) if len(finite) else high, to[0] if np.isfinite(to[0]) else high)
+    high = max(float(finite.max()) if len(finite) else 1.0, max(tos, default=0))
+    low = min(float(finite.min()) if len(finite) else high, min(tos, default=high))
     log_y = low > 0 and high * 1.3 / low > 300   # one outlier flattens the rest on a linear axis: log, as the spread
     top = high * (4 if log_y else 1.3)   # the ∞ rows: a band above every mean (a factor 1.3 is 0.1 decade)
     curves = sorted(tab.groupby(["method", "epochs"]), key=lambda c: (method_order(c[0][0]), c[0][1]))
@@ -77,8 +78,10 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                         ha="center", va="top", fontsize=11, color=kw["color"])
         if "success_mean" in g:
             ax2.errorbar(g["n_traj"] * shift, g["success_mean"], yerr=g["success_ci95"].fillna(0), **kw)
-    if np.isfinite(to[0]):
-        ax.axhline(to[0], color="black", ls=":", label="TO alone")
+    for f, v in sorted(to_by.items(), key=lambda fv: fv[0] != "ms"):
+        if np.isfinite(v):
+            ax.axhline(v, color="black" if f == "ms" else "0.55", ls=":",
+                       label="TO alone" + (f" ({TO_FAMILIES.get(f, f)})" if len(to_by) > 1 else ""))
     n_all = tab["n_traj"].astype(float)
     from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
 
@@ -188,7 +191,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                  for c in CURVE_STYLES if c in set(costs.curve)]
     if np.isfinite(to):
         c_handles.append(Line2D([], [], color="black", ls="-.", lw=1, label="TO alone (naive guess)"))
-    c_handles += [Line2D([], [], color=c, ls="-.", lw=1, label=f"TO alone (naive guess, {f})")
+    c_handles += [Line2D([], [], color=c, ls="-.", lw=1, label=f"TO alone (naive guess, {TO_FAMILIES.get(f, f)})")
                   for f, c in family_lines.items()]
     iters = sorted(int(i) for i in tab_curves.iteration.unique())
     for a in (ax, ax2):
@@ -237,7 +240,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Histogram of TO iterations at the last iteration, at the loop's T_a: TO alone (naive
     guess) vs warm-started by each method's policy (instances whose rollout diverged are no guess), as
     shares of each one's solves (methods pool different numbers of runs; TO alone is one run's);
-    one panel per TO baseline the runs evaluated (multiple shooting; single shooting). ``carried``
+    one panel per TO the runs evaluated (the loop's: fatrop's multiple shooting or box-FDDP; single shooting, the
+    IPOPT baseline). ``carried``
     (:class:`~sdp_cli.report.carry.Carried`): the earlier report's rows of runs whose files are gone."""
     d = df[df.task == task]
     if d.empty:
@@ -262,18 +266,23 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     if not rows and old.empty:
         return []
     tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)
+    fam = tab.method.map(family_of)
+    loop_to = (tab.solver == "multiple shooting") & (fam != "ms")   # the loop's TO is another family's solver
+    tab.loc[loop_to, "solver"] = fam[loop_to].map(lambda f: TO_FAMILIES.get(f, f))
     plt = pyplot()
-    solvers = [s for s in ("multiple shooting", "single shooting") if s in set(tab.solver)]
+    order = ["multiple shooting", *(v for k, v in TO_FAMILIES.items() if k != "ms"), "single shooting"]
+    solvers = [s for s in order if s in set(tab.solver)] + sorted(set(tab.solver) - set(order))
     fig, axes = plt.subplots(1, len(solvers), figsize=(6 * len(solvers), 4), squeeze=False)
     hi = max(int(tab.iterations.max()), 1)
     bins = np.unique(np.geomspace(1, hi + 1, 30).astype(int))
     lo_x, hi_x = max(0.8, tab.iterations.min() / 1.5), hi * 1.5
     for ax, solver in zip(axes[0], solvers):
         t = tab[tab.solver == solver]
-        fams = sorted(set(t.method.map(family_of)))
-        for f in fams:   # TO alone once per TO family (its runs' methods carry the family when several)
+        # TO alone once per panel: a loop-TO panel holds one family's runs; single shooting solves the same
+        # instances whatever the loop's TO was
+        for f in sorted(set(t.method.map(family_of)))[:1]:
             base = _to_alone_once(t[t.method.map(family_of) == f])
-            what = f"TO alone (naive guess{', ' + f if len(fams) > 1 else ''}, {len(base)} instances)"
+            what = f"TO alone (naive guess, {len(base)} instances)"
             ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
                     color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
                     label=f"{what}, mean {base.mean():.0f}")

@@ -60,7 +60,7 @@ def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """``traj_<task>.png`` (:func:`trajectories`), or the earlier report's where some method it draws has only
     carried runs, whose rollouts are gone (``carried``: :class:`~sdp_cli.report.carry.Carried`)."""
     if carried is not None and carried.kept_traj(df, task):
-        return [out / f"traj_{task}.png"]
+        return [carried.out / f"traj_{task}.png"]     # the earlier report's file, kept where it is
     return trajectories(df, task, out)
 
 

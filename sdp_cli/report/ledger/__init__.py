@@ -32,7 +32,7 @@ from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
 from sdp_cli.report.ledger.rules import RULES, Row
 from sdp_cli.report.ledger.verdicts import pct_text
-from sdp_cli.report.rows import last_iteration, unfinished
+from sdp_cli.report.rows import TO_FAMILIES, last_iteration, to_family, unfinished
 from sdp_cli.report.estimates import read_estimate
 
 
@@ -44,7 +44,7 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     out = {}
     for p in sorted(results.glob("*/all_runs.csv")):
         df = pd.read_csv(p)
-        fam = df["to"].astype(object).where(df["to"].notna(), "ms").astype(str) if "to" in df else pd.Series("ms", index=df.index)
+        fam = to_family(df)
         for f in sorted(set(fam) - {"ms"}):
             out[f"{p.parent.name}/{f}"] = df[fam == f].reset_index(drop=True)
         if (fam == "ms").any() or df.empty:
@@ -72,8 +72,8 @@ class Params(dict):
         raise SdpError(f"claim {self.cid}: results/claims.yaml gives no {key!r} (in its params or the shared rules)")
 
 
-#: how the ledger names a TO family (``to`` of the evaluations); ``ms`` is the main one, judged first
-FAMILIES = {"ms": "fatrop", "ddp": "box-FDDP"}
+#: how the ledger names a TO family; ``ms`` is the main one, judged first
+FAMILIES = TO_FAMILIES
 
 
 def _shared(key: str) -> bool:
@@ -88,30 +88,25 @@ def _family_results(res: dict[str, pd.DataFrame], fam: str) -> dict[str, pd.Data
     return out
 
 
-def _renamed(row: Row, fam: str) -> Row:
-    """A family's row: the rules call the loop's TO (``to_alone_*``, ``refined_*``) "multiple shooting", which
-    in its rows is the family's solver."""
-    name = FAMILIES.get(fam, fam)
-    return Row(*(x.replace("multiple shooting", name) for x in (row.ours, row.verdict, row.detail)))
-
-
-def _judge(c: dict, res: dict, rules: dict | None) -> Row:
+def _judge(c: dict, res: dict, rules: dict | None, loop_to: str | None = None) -> Row:
     cid = int(c["id"])
     if not _available(c["needs"], res):
         return Row("", "not run", c.get("not_run", ""))
     try:
-        return RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {})}))
+        return RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {}),
+                                                  **({"loop_to": loop_to} if loop_to else {})}))
     except (KeyError, AttributeError) as e:    # a column missing from an older report
         raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
 
 
-def _judge_family(c: dict, res: dict, rules: dict | None) -> Row:
-    """:func:`_judge` on a TO family's reports, which may hold only runs partway (a re-run filling up): *not
-    run* until one of its runs has reached its loop's final iteration, naming the runs partway."""
+def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
+    """:func:`_judge` on the TO family ``fam``'s reports (the rules name the loop's TO by the family's solver),
+    which may hold only runs partway (a re-run filling up): *not run* until one of its runs has reached its
+    loop's final iteration, naming the runs partway."""
     reports = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
     if reports and all(last_iteration(d).empty for d in reports):
         return Row("partway (no run finished yet)", "not run", "; ".join(u for u in map(unfinished, reports) if u))
-    return _judge(c, res, rules)
+    return _judge(c, res, rules, FAMILIES.get(fam, fam))
 
 
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
@@ -123,7 +118,7 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
     rows = []
     for c in claims:
         row = _judge(c, res, rules)
-        more = [(f, _renamed(_judge_family(c, _family_results(res, f), rules), f)) for f in others
+        more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in others
                 if _available(c["needs"], _family_results(res, f))
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
         if more:

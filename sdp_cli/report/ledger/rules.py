@@ -22,6 +22,12 @@ __all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
 
 
 # ---------------------------------------------------------------------------- the claims' numbers
+def loop_to(p) -> str:
+    """How a rule names the loop's TO (``to_alone_*``, ``refined_*``): its family's solver (``loop_to`` of the
+    claim's parameters, set by the ledger per TO family), fatrop's multiple shooting by default."""
+    return p.get("loop_to", "multiple shooting")
+
+
 def fig2_only_sdp(res, p) -> Row:
     d = res["fig2"]
     last = last_iteration(d)
@@ -65,10 +71,10 @@ def fig2_to_alone(res, p) -> Row:
     fail_ss = 1 - sdp.ss_to_alone_converged_rate.mean() if "ss_to_alone_converged_rate" in sdp else np.nan
     it_ms = per_seed(sdp, "refined_iterations_mean")
     it_ss = per_seed(sdp, "ss_refined_iterations_mean") if "ss_refined_iterations_mean" in sdp else pd.Series(dtype=float)
-    ours = (f"TO alone fails {100 * fail_ms:.0f}% (multiple shooting, {sdp.to_alone_iterations_mean.mean():.0f} it.), "
+    ours = (f"TO alone fails {100 * fail_ms:.0f}% ({loop_to(p)}, {sdp.to_alone_iterations_mean.mean():.0f} it.), "
             f"{100 * fail_ss:.0f}% (single shooting, {sdp.ss_to_alone_iterations_mean.mean():.0f} it.); "
-            f"refining the final SDP: {fmt(it_ms)} it. (multiple shooting), {fmt(it_ss)} it. (single shooting)")
-    ours += (f"; cost: TO alone {sdp.to_alone_cost_mean.mean():.3g} (multiple shooting), "
+            f"refining the final SDP: {fmt(it_ms)} it. ({loop_to(p)}), {fmt(it_ss)} it. (single shooting)")
+    ours += (f"; cost: TO alone {sdp.to_alone_cost_mean.mean():.3g} ({loop_to(p)}), "
              f"{sdp.ss_to_alone_cost_mean.mean():.3g} (single shooting), refined from the final SDP "
              f"{fmt(per_seed(sdp, 'refined_cost_mean'))}")
     hits = [f >= p["fail_rate"] for f in (fail_ms, fail_ss) if np.isfinite(f)]
@@ -94,7 +100,7 @@ def table2c(res, p) -> Row:
     hi = cost[cost.index >= worse]
     degr = hi.max() / lo if len(hi) else np.nan
     t9 = mid if mid in roll.index else roll.index[np.argmin(abs(roll.index - mid))]
-    ours = (f"T_a {t1}: refine {solve[t1]:.3g} s vs TO alone {to_ms:.3g} s ({r_ms:.1f}x, multiple shooting), "
+    ours = (f"T_a {t1}: refine {solve[t1]:.3g} s vs TO alone {to_ms:.3g} s ({r_ms:.1f}x, {loop_to(p)}), "
             f"{ss_solve[t1]:.3g} s vs {to_ss:.3g} s ({r_ss:.1f}x, single shooting); T_a {t9}: rollout "
             f"{roll[t9]:.3g} s, solve {solve[t9]:.3g} s / {ss_solve[t9]:.3g} s; policy cost at T_a >= {worse}: "
             + ", ".join(f"{c:.3g}" for c in hi) + f" vs best {lo:.3g} at T_a <= {best} ({degr:.2f}x)")
@@ -121,7 +127,7 @@ def speedup(res, p) -> Row:
             task, *loop = key if isinstance(key, tuple) else (key,)
             several = len(loop) and last[last.task == task].groupby(keys[1:], dropna=False).ngroups > 1
             where = f"{task} (T_h {loop[0]:g}, T_a {loop[1]:g})" if several else task
-            for name, to, ref in (("multiple shooting", "to_alone_solve_time_mean", "refined_solve_time_mean"),
+            for name, to, ref in ((loop_to(p), "to_alone_solve_time_mean", "refined_solve_time_mean"),
                                   ("single shooting", "ss_to_alone_solve_time_mean", "ss_refined_solve_time_mean")):
                 if ref not in sdp or sdp[ref].isna().all():
                     continue
@@ -213,10 +219,10 @@ def quadrotor9_times(res, p) -> Row:
         final = (f"; DP at its final iteration {dp.iteration.max() + 1:g}: TO alone "
                  f"{dp.to_alone_solve_time_mean.mean():.3g} s, from DP {dp.refined_solve_time_mean.mean():.3g} s"
                  if len(dp) else "")
-        return Row(_q9_partway(runs) + final, "not run", todo or f"{p['task']} not run yet")
+        return Row(_q9_partway(runs, loop_to(p)) + final, "not run", todo or f"{p['task']} not run yet")
     parts, verdicts = [], []
     alone, warm = p["paper_times"]
-    for name, pre in (("multiple shooting", ""), ("single shooting", "ss_")):
+    for name, pre in ((loop_to(p), ""), ("single shooting", "ss_")):
         col = f"{pre}refined_solve_time_mean"
         if col not in q or q[col].isna().all():
             continue
@@ -232,7 +238,7 @@ def quadrotor9_times(res, p) -> Row:
               "baseline") if x))
 
 
-def _q9_partway(d: pd.DataFrame) -> str:
+def _q9_partway(d: pd.DataFrame, loop_to: str = "multiple shooting") -> str:
     """Claim 10's quantities at the latest iteration both SDP and DP reached, for loops not finished:
     shown beside the verdict "not run", never judged (the claim is about the final policies)."""
     if d.empty or not {"sdp", "dp"} <= set(d.method):
@@ -243,7 +249,7 @@ def _q9_partway(d: pd.DataFrame) -> str:
     t = {m: g[g.method == m] for m in ("sdp", "dp")}
     pct = lambda v: f"{100 * v:.0f}%"   # noqa: E731
     n_algo = f" of {d.n_algo.max():g}" if "n_algo" in d and d.n_algo.notna().any() else ""
-    return (f"partway, not judged: iteration {it + 1}{n_algo} (the latest both reached), multiple shooting: "
+    return (f"partway, not judged: iteration {it + 1}{n_algo} (the latest both reached), {loop_to}: "
             f"TO alone {g.to_alone_solve_time_mean.mean():.3g} s, from SDP {t['sdp'].refined_solve_time_mean.mean():.3g} s, "
             f"from DP {t['dp'].refined_solve_time_mean.mean():.3g} s; converged: TO alone "
             f"{pct(g.to_alone_converged_rate.mean())}, from SDP {pct(t['sdp'].refined_converged_rate.mean())}, "
