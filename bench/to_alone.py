@@ -1,7 +1,7 @@
 """TO alone on the faithful tasks, every TO baseline, beside the paper's numbers (results/tasks/TO_alone.md).
 
-    python bench/to_alone.py [--tasks pendulum,double_pendulum,...] [--n 50] [--n-slow 10] [--jobs 2]
-                             [--out results/tasks/TO_alone.md]
+    python bench/to_alone.py [--tasks pendulum,double_pendulum,...] [--baselines ms-fatrop,ss-ipopt,ddp] [--n 50]
+                             [--n-slow 10] [--jobs 2] [--out results/tasks/TO_alone.md [--update]]
 
 Per task and baseline, from the naive guess over the first ``n`` instances of collection seed 0
 (``--n-slow`` for the (task, baseline) pairs listed in SLOW): converged %, reached % (the task's
@@ -14,8 +14,10 @@ mean and median solve time, and the paper's figure where it gives one. Baselines
   (:mod:`sdp_cli.trajopt.single_shooting`);
 - ``ddp``: box-FDDP (:mod:`sdp_cli.trajopt.ddp`, the paper's solver family), the ``n`` instances solved as one
   batch; its time per instance is its iterations x the batch's wall time per instance-iteration (the batch's
-  wall time / n is printed beside it). Tasks with state constraints are not run (no augmented-Lagrangian loop
-  yet).
+  wall time / n is printed beside it); the quadrotor's state constraints by its augmented-Lagrangian loop.
+
+``--baselines ddp --update`` re-runs only those pairs and keeps the other rows of ``--out`` (a line under the
+header says which rows, at which commit and date).
 
 All with a 1000-iteration cap; tolerance 1e-6 (fatrop, IPOPT), crocoddyl's stopping rule 1e-9 (DDP). Each (task, baseline) runs in its own process
 (one thread), ``--jobs`` at a time; times are wall seconds of the solve calls on this machine.
@@ -40,8 +42,6 @@ BASELINES = ("ms-fatrop", "ss-ipopt", "ddp")
 SLOW = {("ur5-fixed", "ss-ipopt"), ("ur5-rinit", "ss-ipopt"), ("quadrotor-0", "ss-ipopt")}
 #: pairs not run: single shooting with the quadrotor's column constraints took > 2 min per solve in a probe
 SKIP = {("quadrotor-1", "ss-ipopt"), ("quadrotor-3", "ss-ipopt"), ("quadrotor-9", "ss-ipopt")}
-#: pairs the DDP solver refuses (state constraints: its augmented-Lagrangian outer loop is not built)
-UNSUPPORTED = {(q, "ddp") for q in ("quadrotor-0", "quadrotor-1", "quadrotor-3", "quadrotor-9")}
 #: the paper's TO-alone figures (Sec. IV, Fig. 2b, Sec. IV-E)
 PAPER = {"double_pendulum": "mean cost 50.1, 896 iterations, 80% not converged (ProxDDP, Fig. 2b)",
          "quadrotor-9": "16.3 s per solve (Sec. IV-E)"}
@@ -115,10 +115,13 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=50)
     ap.add_argument("--n-slow", type=int, default=10)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--baselines", default=",".join(BASELINES))
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--update", action="store_true", help="keep the rows of --out of the pairs not run")
     a = ap.parse_args()
-    jobs = [(t, b, a.n_slow if (t, b) in SLOW else a.n) for t in a.tasks.split(",") for b in BASELINES
-            if (t, b) not in SKIP | UNSUPPORTED]
+    baselines = a.baselines.split(",")
+    jobs = [(t, b, a.n_slow if (t, b) in SLOW else a.n) for t in a.tasks.split(",") for b in baselines
+            if (t, b) not in SKIP]
 
     def run(job):
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -144,29 +147,58 @@ def main() -> None:
              "its times are iterations x the batch's wall time per instance-iteration.", "",
              "| task | baseline | n | converged | reached | mean cost | median cost | iterations | time mean / median (s) "
              "| the paper (TO alone) |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for t, b in [(t, b) for t in a.tasks.split(",") for b in BASELINES if (t, b) in SKIP | UNSUPPORTED]:
+    for t, b in [(t, b) for t in a.tasks.split(",") for b in baselines if (t, b) in SKIP]:
         rows.append({"task": t, "baseline": b, "skipped": True})
     rows.sort(key=lambda r: (a.tasks.split(",").index(r["task"]), BASELINES.index(r["baseline"])))
+    table = {}
     for r in rows:
         if r.get("skipped"):
-            why = ("state constraints: the DDP's augmented-Lagrangian loop is not built" if r["baseline"] == "ddp"
-                   else "single shooting with column constraints: > 2 min per solve in a probe")
-            lines.append(f"| {r['task']} | {r['baseline']} | not run | | | | | | ({why}) | {PAPER.get(r['task'], '')} |")
+            why = "single shooting with column constraints: > 2 min per solve in a probe"
+            table[r["task"], r["baseline"]] = (f"| {r['task']} | {r['baseline']} | not run | | | | | | ({why}) | "
+                                               f"{PAPER.get(r['task'], '')} |")
             continue
         if r["baseline"] == "ddp":
-            lines.append(f"| {r['task']} | ddp (batch of {r['n']}) | {r['n']} | {r['converged']:.0%} | {r['reached']:.0%} "
-                         f"| {r['cost_mean']:.4g} | {r['cost_median']:.4g} | {r['iterations']:.1f} | "
-                         f"{r['time_mean']:.3f} / {r['time_median']:.3f} (batch wall / n: {r['batch_wall'] / r['n']:.3f}) "
-                         f"| {PAPER.get(r['task'], '')} |")
+            table[r["task"], "ddp"] = (
+                f"| {r['task']} | ddp (batch of {r['n']}) | {r['n']} | {r['converged']:.0%} | {r['reached']:.0%} "
+                f"| {r['cost_mean']:.4g} | {r['cost_median']:.4g} | {r['iterations']:.1f} | "
+                f"{r['time_mean']:.3f} / {r['time_median']:.3f} (batch wall / n: {r['batch_wall'] / r['n']:.3f}) "
+                f"| {PAPER.get(r['task'], '')} |")
             continue
-        lines.append(f"| {r['task']} | {r['baseline']} | {r['n']} | {r['converged']:.0%} | {r['reached']:.0%} | "
-                     f"{r['cost_mean']:.4g} | {r['cost_median']:.4g} | {r['iterations']:.1f} | "
-                     f"{r['time_mean']:.3f} / {r['time_median']:.3f} | {PAPER.get(r['task'], '')} |")
+        table[r["task"], r["baseline"]] = (
+            f"| {r['task']} | {r['baseline']} | {r['n']} | {r['converged']:.0%} | {r['reached']:.0%} | "
+            f"{r['cost_mean']:.4g} | {r['cost_median']:.4g} | {r['iterations']:.1f} | "
+            f"{r['time_mean']:.3f} / {r['time_median']:.3f} | {PAPER.get(r['task'], '')} |")
+    if a.update and a.out and a.out.is_file():
+        lines = _updated(a.out.read_text(), table, " ".join(sys.argv[1:]), rev)
+    else:
+        lines += list(table.values())
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(text)
+
+
+def _updated(old: str, table: dict, args: str, rev: str) -> list[str]:
+    """The earlier table ``old`` with the rows of ``table`` ``{(task, baseline): row}`` put in place of its rows of
+    those pairs (new pairs after their task's last row), and a line under the header saying what was re-run."""
+    lines, done = old.rstrip("\n").split("\n"), set()
+    key = lambda ln: (ln.split("|")[1].strip(), ln.split("|")[2].strip().split(" ")[0])   # noqa: E731
+    rows = [i for i, ln in enumerate(lines) if ln.startswith("| ") and not ln.startswith("| task |")]
+    for i in rows:
+        if key(lines[i]) in table:
+            lines[i] = table[key(lines[i])]
+            done.add(key(lines[i]))
+    for k, row in table.items():
+        if k not in done:
+            at = max((i for i in rows if key(lines[i])[0] == k[0]), default=len(lines) - 1)
+            lines.insert(at + 1, row)
+            rows = [j + (j > at) for j in rows] + [at + 1]
+    pairs = ", ".join(f"{t} {b}" for t, b in table)
+    note = (f"Rows re-run by `python bench/to_alone.py {args}` at commit `{rev}`, {datetime.date.today()}: "
+            f"{pairs}.")
+    head = next(i for i, ln in enumerate(lines) if ln.startswith("| task |"))
+    return lines[:head] + [note, ""] + lines[head:]
 
 
 if __name__ == "__main__":

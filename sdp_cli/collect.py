@@ -288,7 +288,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     task = get_task(config.task, **config.task_options)  # validates the name early
     from sdp_cli.trajopt import check_to
 
-    check_to(config.to, task)
+    check_to(config.to)
     if not isinstance(executor, Executor):
         check_executor_options(executor, workers, scheduler)  # bad options fail before any work
     jobs = _Jobs(config, task)   # loads and checks the policy before anything is written

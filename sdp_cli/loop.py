@@ -119,7 +119,7 @@ class LoopConfig:
         from sdp_cli.trajopt import check_to
 
         task = get_task(self.task)
-        check_to(self.to, task)
+        check_to(self.to)
         if self.max_iter <= 0:
             raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
         tcfg, r = self.train, self.rollout

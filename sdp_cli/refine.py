@@ -66,7 +66,7 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")
     from sdp_cli.trajopt import check_to
 
-    check_to(to, task)
+    check_to(to)
     n = len(arrays["xi"])
     own = not isinstance(executor, Executor)
     if own and not scheduler:

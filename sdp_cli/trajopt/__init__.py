@@ -19,23 +19,17 @@ from sdp_cli.trajopt.solver import (DEFAULT_MAX_ITER, DEFAULT_SOLVER, SOLVERS, S
 TO_FAMILIES = ("ms", "ddp")
 
 
-def check_to(to: str, task=None) -> None:
-    """One clear error for an unknown family, or a task the family cannot solve (before any work)."""
+def check_to(to: str) -> None:
+    """One clear error for an unknown family (before any work); every family solves every task."""
     from sdp_cli.errors import SdpError
 
     if to not in TO_FAMILIES:
         raise SdpError(f"--to must be one of {', '.join(TO_FAMILIES)}; got {to!r}")
-    if to == "ddp" and task is not None:
-        from sdp_cli.trajopt.ddp import unsupported
-
-        why = unsupported(task)
-        if why:
-            raise SdpError(f"--to ddp: task {task.name!r} has {why}, which the DDP solver does not handle; use --to ms")
 
 
 def get_to_solver(task, to: str = "ms", max_iter: int = DEFAULT_MAX_ITER):
     """The solver of TO family ``to`` for ``task`` (cached per process)."""
-    check_to(to, task)
+    check_to(to)
     if to == "ddp":
         from sdp_cli.trajopt.ddp import get_ddp_solver
 

@@ -34,9 +34,13 @@ instances (sequential in t only). An instance that converged (or failed) leaves 
 changing. Its ``solve_time`` is its iterations x the batch's wall time per instance-iteration, so the times
 of a batch sum to its wall time (recorded as ``batch_wall_time`` on every result).
 
-Scope today: tasks whose state is a vector space (``nx == ndx``) without state constraints (the pendulums,
-UR5); the quadrotor (a free-flyer with floor, ceiling and column constraints) needs the augmented-Lagrangian
-outer loop and is refused with one line.
+Every task: a state on a manifold (the quadrotor's SE(3) base) is handled in the tangent space
+(:mod:`sdp_cli.trajopt.ddp_model`), state constraints ``h(x) <= 0`` (the quadrotor's floor, ceiling and columns)
+by an augmented-Lagrangian outer loop (:mod:`sdp_cli.trajopt.ddp_al`) whose updates happen per instance inside
+the same batched iterations; "converged" then also requires every ``h <= H_TOL`` and the iteration count (and
+its cap) is that of all inner DDP iterations. The feedback gains of such a solution come from the same code as
+fatrop's (:func:`sdp_cli.trajopt.gains.linearize`, active state constraints as equalities), with the ambient
+co-states ``-J_-' V_x`` and the multipliers ``max(0, lam + rho h)``.
 """
 
 from __future__ import annotations
@@ -48,8 +52,11 @@ import casadi as ca
 import numpy as np
 
 from sdp_cli.errors import SdpError
-from sdp_cli.trajopt import gains as _gains
+from sdp_cli.trajopt import ddp_al as al
 from sdp_cli.trajopt.boxqp import box_qp, free_solve
+from sdp_cli.trajopt.ddp_gains import GainsMixin
+from sdp_cli.trajopt.ddp_model import cols as _cols
+from sdp_cli.trajopt.ddp_model import ddp_functions, general, left_inverse, to_tangent
 from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
 from sdp_cli.trajopt.solver import DEFAULT_MAX_ITER, SolveResult
 
@@ -61,72 +68,12 @@ ACCEPT, ACCEPT_NEG = 0.1, 2.0
 ALPHAS = tuple(2.0 ** -np.arange(11))
 
 
-def unsupported(task) -> str | None:
-    """Why the DDP cannot solve ``task`` (state constraints, a configuration manifold), or None."""
-    if task.n_h:
-        return "state constraints (its augmented-Lagrangian outer loop is not built yet)"
-    if task.nx != task.ndx:
-        return "a configuration manifold (nx != ndx)"
-    return None
-
-
-def ddp_functions(task, T: int) -> list[ca.Function]:
-    """The functions box-FDDP evaluates (ambient = tangent coordinates here):
-
-    - ``sdp_ddp_stage(x, u, xi) -> (f, A, B, l, l_x, l_u, l_xx, l_uu, l_ux)``
-    - ``sdp_ddp_term(x, xi) -> (l_T, l_Tx, l_Txx)``
-    - ``sdp_ddp_step(x, u) -> f``
-    - ``sdp_ddp_hess(x, u, xi, lam) -> d^2/d(x,u)^2 [l - lam' f]`` (the exact Hessian of the gains)
-    - ``sdp_ddp_roll_T<T>(x^_0, U, k, K, X, gaps, alpha, xi) -> (X^_{1..T} (nx, T), U^ (nu, T), cost)``: the
-      forward pass of one step ``alpha`` as one call (a casadi ``mapaccum`` over t: a loop in the generated
-      code), stages horizontally stacked, ``K_t`` as ``vec(K_t)`` (column-major), ``gaps`` = ``fbar_{1..T}``
-    - ``sdp_ddp_riccati_T<T>``: :func:`sdp_cli.trajopt.gains.riccati_function` (the gains' recursion)
-    """
-    x, u, xi = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
-    lam = ca.SX.sym("lam", task.nx)
-    f = task.f_step(x, u)
-    l_run = task.f_running_cost(x, u, xi)
-    l_T = task.f_terminal_cost(x, xi)
-    lu = ca.gradient(l_run, u)
-    stage = ca.Function("sdp_ddp_stage", [x, u, xi],
-                        [f, ca.jacobian(f, x), ca.jacobian(f, u), l_run, ca.gradient(l_run, x), lu,
-                         ca.hessian(l_run, x)[0], ca.hessian(l_run, u)[0], ca.jacobian(lu, x)])
-    term = ca.Function("sdp_ddp_term", [x, xi], [l_T, ca.gradient(l_T, x), ca.hessian(l_T, x)[0]])
-    step = ca.Function("sdp_ddp_step", [x, u], [f])
-    z = ca.vertcat(x, u)
-    hess = ca.Function("sdp_ddp_hess", [x, u, xi, lam], [ca.hessian(l_run - ca.dot(lam, f), z)[0]])
-    # one closed-loop step of the forward pass, accumulated over t
-    xh, u_old, k, Kv, x_old, gap = (ca.SX.sym(nm, d) for nm, d in (("xh", task.nx), ("u_old", task.nu),
-                                    ("k", task.nu), ("K", task.nu * task.nx), ("x_old", task.nx), ("gap", task.nx)))
-    alpha = ca.SX.sym("alpha")
-    uh = u_old + alpha * k + ca.mtimes(ca.reshape(Kv, task.nu, task.nx), xh - x_old)
-    uh = ca.fmin(ca.fmax(uh, ca.DM(task.u_lb)), ca.DM(task.u_ub))
-    closed = ca.Function("sdp_ddp_closed", [xh, u_old, k, Kv, x_old, gap, alpha, xi],
-                         [task.f_step(xh, uh) - (1 - alpha) * gap, uh, task.f_running_cost(xh, uh, xi)])
-    acc = closed.mapaccum("sdp_ddp_acc", T)
-    x0h = ca.SX.sym("x0h", task.nx)
-    Us, ks, Ks = ca.SX.sym("U", task.nu, T), ca.SX.sym("k", task.nu, T), ca.SX.sym("Kv", task.nu * task.nx, T)
-    Xs, gs = ca.SX.sym("X", task.nx, T), ca.SX.sym("gaps", task.nx, T)
-    Xn, Un, ls = acc(x0h, Us, ks, Ks, Xs, gs, ca.repmat(alpha, 1, T), ca.repmat(xi, 1, T))
-    roll = ca.Function(f"sdp_ddp_roll_T{T}", [x0h, Us, ks, Ks, Xs, gs, alpha, xi],
-                       [Xn, Un, ca.sum2(ls) + task.f_terminal_cost(Xn[:, -1], xi)])
-    riccati = _gains.riccati_function(task.ndx, task.nu, T)
-    args = riccati.mx_in()
-    riccati = ca.Function(f"sdp_ddp_riccati_T{T}", args, riccati.call(args))
-    return [stage, term, step, hess, roll, riccati]
-
-
 def _mv(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Batched matrix-vector product ``(n, i, j), (n, j) -> (n, i)``."""
     return np.matmul(M, v[..., None])[..., 0]
 
 
-def _cols(M, n: int, rows: int, cols: int) -> np.ndarray:
-    """casadi's horizontally stacked map output ``(rows, n cols)`` -> ``(n, rows, cols)``."""
-    return np.asarray(M).reshape(rows, n, cols).transpose(1, 0, 2)
-
-
-class DDPSolver:
+class DDPSolver(GainsMixin):
     """Box-FDDP for one task and horizon (see the module docstring); ``solve`` / ``solve_from`` return a
     :class:`~sdp_cli.trajopt.solver.SolveResult` like the NLP solvers, ``solve_batch`` N of them."""
 
@@ -134,9 +81,6 @@ class DDPSolver:
 
     def __init__(self, task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER, tol: float = STOP_TOL,
                  jit: bool | None = None):
-        why = unsupported(task)
-        if why:
-            raise SdpError(f"--to ddp: task {task.name!r} has {why}, which the DDP solver does not handle; use --to ms")
         self.task, self.T = task, int(task.T if horizon is None else horizon)
         if self.T < 1 or int(max_iter) < 0 or not tol > 0:
             raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
@@ -151,6 +95,7 @@ class DDPSolver:
         self._f = {f.name(): (ca.external(f.name(), lib) if lib is not None else f) for f in funcs}
         self.jitted = lib is not None
         self._maps: dict = {}
+        self.general, self.ndx = general(task), task.ndx
 
     def __repr__(self) -> str:
         return f"DDPSolver(task={self.task.name!r}, T={self.T}, max_iter={self.max_iter}, jit={self.jitted})"
@@ -162,8 +107,9 @@ class DDPSolver:
         return self._maps[key]
 
     # ------------------------------------------------------------------ evaluations (batched)
-    def _derivatives(self, X, U, xi):
-        """Stage and terminal derivatives along ``X (n, T+1, nx)``, ``U (n, T, nu)``."""
+    def _derivatives(self, X, U, xi, al_state=None):
+        """Stage and terminal derivatives along ``X (n, T+1, nx)``, ``U (n, T, nu)`` (tangent-space, with the
+        penalty at ``al_state = (lam, rho)`` for a :func:`general` task)."""
         n, T, nx, nu = len(X), self.T, self.task.nx, self.task.nu
         m = n * T
         xs = X[:, :-1].reshape(m, nx).T
@@ -178,14 +124,47 @@ class DDPSolver:
         lT, lTx, lTxx = self._map("sdp_ddp_term", n)(X[:, -1].T, xi.T)
         d["lT"], d["lTx"], d["lTxx"] = np.asarray(lT).ravel(), np.asarray(lTx).T, _cols(lTxx, n, nx, nx)
         d["J"] = d["l"].sum(1) + d["lT"]
+        if self.general:
+            d["al"] = al_state
+            self._general_derivatives(d, X, xi)
         return d
+
+    def _chart(self, X, xi):
+        """``J_+ (n, T+1, nx, ndx)``, ``h (n, T+1, n_h)`` and ``dh (n, T+1, n_h, ndx)`` along ``X``."""
+        n, T1, nx, ndx, nh = len(X), self.T + 1, self.task.nx, self.ndx, self.task.n_h
+        Jp, h, dh = self._map("sdp_ddp_chart", n * T1)(X.reshape(n * T1, nx).T, np.repeat(xi, T1, axis=0).T)
+        return (_cols(Jp, n * T1, nx, ndx).reshape(n, T1, nx, ndx), np.asarray(h).T.reshape(n, T1, nh),
+                _cols(dh, n * T1, nh, ndx).reshape(n, T1, nh, ndx))
+
+    def _h(self, X, xi):
+        """``h (n, m, n_h)`` at the states ``X (n, m, nx)``."""
+        n, m = X.shape[:2]
+        h = self._map("sdp_ddp_h", n * m)(X.reshape(n * m, -1).T, np.repeat(xi, m, axis=0).T)
+        return np.asarray(h).T.reshape(n, m, self.task.n_h)
+
+    def _general_derivatives(self, d, X, xi):
+        """Tangent-space derivatives (:func:`~sdp_cli.trajopt.ddp_model.to_tangent`) and the penalty of the
+        state constraints on ``x_1..x_T`` (:mod:`~sdp_cli.trajopt.ddp_al`) at the instances' ``lam``, ``rho``
+        (``d["al"]``, set by the caller); ``d["Jp"]``, ``d["Jm"]``, ``d["h"]`` kept for the gaps and gains."""
+        Jp, h, dh = self._chart(X, xi)
+        Jm = left_inverse(Jp)
+        to_tangent(d, Jp, Jm)
+        d["Jp"], d["Jm"], d["h"] = Jp, Jm, h[:, 1:]
+        if self.task.n_h:
+            lam, rho = d["al"]
+            g, H = al.derivatives(h[:, 1:], dh[:, 1:], lam, rho)
+            d["lx"][:, 1:] += g[:, :-1]
+            d["lxx"][:, 1:] += H[:, :-1]
+            d["lTx"] += g[:, -1]
+            d["lTxx"] += H[:, -1]
+            d["J"] = d["J"] + al.penalty(h[:, 1:], lam, rho)
 
     # ------------------------------------------------------------------ backward pass
     def _backward(self, d, gaps, U, reg):
         """Riccati recursion with gaps and the box QP. Returns ``(k (n,T,nu), K (n,T,nu,nx), Vx (n,T+1,nx),
         free (n,T,nu), stop (n,), ok (n,))``; ``ok`` False where ``Quu + reg I`` is not positive definite."""
         task, T = self.task, self.T
-        n, nx, nu = len(U), task.nx, task.nu
+        n, nx, nu = len(U), self.ndx, task.nu
         k, K = np.zeros((n, T, nu)), np.zeros((n, T, nu, nx))
         Vx_all = np.zeros((n, T + 1, nx))
         free_all = np.ones((n, T, nu), dtype=bool)
@@ -244,19 +223,27 @@ class DDPSolver:
         d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
         return d1, d2
 
-    def _rollout(self, X, U, gaps, k, K, alpha, xi):
-        """The forward pass of a step ``alpha (n,)`` (one compiled call): ``(X^, U^, cost (n,))``."""
+    def _rollout(self, X, U, gaps, k, K, alpha, xi, Jm=None, al_state=None):
+        """The forward pass of a step ``alpha (n,)`` (one compiled call): ``(X^, U^, cost (n,))``; ``Jm``: the
+        left inverses ``J_-`` along ``X`` of a :func:`general` task, ``al_state``: its ``(lam, rho)``."""
         task, T = self.task, self.T
-        n, nx, nu = len(X), task.nx, task.nu
-        x0h = X[:, 0] + alpha[:, None] * gaps[:, 0]
+        n, nx, nu, ndx = len(X), task.nx, task.nu, self.ndx
+        if Jm is not None:              # tangent gaps and gains: x^_0 on the manifold, ambient gains K_t J_-(x_t)
+            x0h = np.array([task.integrate(X[i, 0], alpha[i] * gaps[i, 0]) for i in range(n)])
+            K = K @ Jm[:, :-1]
+        else:
+            x0h = X[:, 0] + alpha[:, None] * gaps[:, 0]
         Kv = K.transpose(0, 1, 3, 2).reshape(n * T, nu * nx).T          # vec(K_t), column-major
         Xn, Un, J = self._map(f"sdp_ddp_roll_T{T}", n)(
             x0h.T, U.reshape(n * T, nu).T, k.reshape(n * T, nu).T, Kv, X[:, :-1].reshape(n * T, nx).T,
-            gaps[:, 1:].reshape(n * T, nx).T, alpha[None], xi.T)
+            gaps[:, 1:].reshape(n * T, ndx).T, alpha[None], xi.T)
         Xh = np.empty_like(X)
         Xh[:, 0] = x0h
         Xh[:, 1:] = np.asarray(Xn).T.reshape(n, T, nx)
-        return Xh, np.asarray(Un).T.reshape(n, T, nu), np.asarray(J).ravel()
+        J = np.asarray(J).ravel()
+        if task.n_h:                    # the penalty of the state constraints at the instances' lam, rho
+            J = J + al.penalty(self._h(Xh[:, 1:], xi), *al_state)
+        return Xh, np.asarray(Un).T.reshape(n, T, nu), J
 
     # ------------------------------------------------------------------ solve
     def solve(self, xi, X_init, U_init, *, gains: bool = True) -> SolveResult:
@@ -270,7 +257,7 @@ class DDPSolver:
     def solve_batch(self, x0, xi, X_init, U_init, *, gains: bool = True) -> list[SolveResult]:
         """Solve N instances together: ``x0 (N, nx)``, ``xi (N, n_xi)``, guesses ``X_init (N, T+1, nx)``,
         ``U_init (N, T, nu)``. Never raises on non-convergence."""
-        task, T = self.task, self.T
+        task, T, ndx = self.task, self.T, self.ndx
         x0, xi = np.asarray(x0, float), np.asarray(xi, float)
         X, U = np.array(X_init, dtype=float), np.array(U_init, dtype=float)
         N = len(x0)
@@ -286,25 +273,40 @@ class DDPSolver:
         status = np.array(["" if a else "not converged: non-finite guess (solver not started)" for a in active],
                           dtype=object)
         cost = np.full(N, np.nan)
+        # the augmented Lagrangian's state per instance (ddp_al; empty without state constraints)
+        lam, rho = np.zeros((N, T, task.n_h)), np.full(N, al.RHO_INIT)
+        inner_tol, viol_prev = np.full(N, max(al.INNER_TOL_INIT, self.tol)), np.full(N, np.inf)
         # per instance: V_x and the free controls of its last backward pass (for the gains)
-        Vx_keep, free_keep = np.zeros((N, T + 1, task.nx)), np.ones((N, T, task.nu), dtype=bool)
-        lin_keep = {"A": np.zeros((N, T, task.nx, task.nx)), "B": np.zeros((N, T, task.nx, task.nu)),
-                    "lTxx": np.zeros((N, task.nx, task.nx))}
+        Vx_keep, free_keep = np.zeros((N, T + 1, ndx)), np.ones((N, T, task.nu), dtype=bool)
+        lin_keep = {"A": np.zeros((N, T, ndx, ndx)), "B": np.zeros((N, T, ndx, task.nu)),
+                    "lTxx": np.zeros((N, ndx, ndx))}
         for _ in range(self.max_iter + 1):
             idx = np.flatnonzero(active)
             if not len(idx):
                 break
             Xa, Ua, xia = X[idx], U[idx], xi[idx]
-            d = self._derivatives(Xa, Ua, xia)
-            gaps = np.concatenate([(x0[idx] - Xa[:, 0])[:, None], d["f"] - Xa[:, 1:]], axis=1)
-            cost[idx] = d["J"]
+            d = self._derivatives(Xa, Ua, xia, (lam[idx], rho[idx]))
+            amb = np.concatenate([(x0[idx] - Xa[:, 0])[:, None], d["f"] - Xa[:, 1:]], axis=1)
+            gaps = _mv(d["Jm"], amb) if self.general else amb       # in the tangent space of x_0..x_T
+            cost[idx] = d["J"] if not task.n_h else d["J"] - al.penalty(d["h"], lam[idx], rho[idx])
             bad = ~np.isfinite(d["J"])
             k, K, Vx, free, stop, ok = self._backward(d, np.where(np.isfinite(gaps), gaps, 0.0), Ua, reg[idx])
             Vx_keep[idx], free_keep[idx] = Vx, free
-            feasible = np.abs(gaps).max(axis=(1, 2)) <= GAP_TOL
-            done = ok & feasible & (stop <= self.tol) & ~bad
+            feasible = np.abs(amb).max(axis=(1, 2)) <= GAP_TOL
+            stationary = ok & feasible & ~bad
+            viol = al.violation(d["h"]) if task.n_h else np.zeros(len(idx))
+            done = stationary & (stop <= self.tol) & (viol <= al.H_TOL)
             converged[idx[done]] = True
             status[idx[done]] = "converged"
+            # an augmented-Lagrangian subproblem solved, the constraints not yet met: update lam, rho, inner tol
+            outer = stationary & ~done & (stop <= inner_tol[idx]) if task.n_h else np.zeros(len(idx), dtype=bool)
+            if outer.any():
+                o = idx[outer]
+                lam[o] = al.multipliers(d["h"][outer], lam[o], rho[o])
+                slow = viol[outer] > al.VIOL_DECREASE * viol_prev[o]
+                rho[o[slow]] = np.minimum(al.RHO_MAX, rho[o[slow]] * al.RHO_FACTOR)
+                viol_prev[o] = viol[outer]
+                inner_tol[o] = np.maximum(self.tol, inner_tol[o] * al.INNER_FACTOR)
             out_of_iter = iters[idx] >= self.max_iter
             status[idx[out_of_iter & ~done]] = f"not converged: {self.max_iter} iterations (the cap)"
             status[idx[bad & ~done]] = "not converged: non-finite cost"
@@ -317,10 +319,10 @@ class DDPSolver:
             iters[idx[go]] += 1
             retry = go & ~ok                                    # Quu not positive definite: more regularization
             reg[idx[retry]] *= REG_FACTOR
-            search = go & ok
+            search = go & ok & ~outer                           # (an updated penalty needs new derivatives)
             if search.any():
                 s = np.flatnonzero(search)
-                acc = self._line_search(X, U, idx[s], xi, d, gaps, k, K, s)
+                acc = self._line_search(X, U, idx[s], xi, d, gaps, k, K, s, (lam, rho))
                 dec, inc = idx[s][acc > STEP_DEC], idx[s][acc <= STEP_INC]
                 reg[dec] = np.maximum(REG_MIN, reg[dec] / REG_FACTOR)
                 reg[inc] *= REG_FACTOR
@@ -332,29 +334,36 @@ class DDPSolver:
         wall = time.perf_counter() - t_start
         per_iter = wall / max(1, int(iters.sum()))
         f = self._step_one(X[:, :-1].reshape(N * T, task.nx), U.reshape(N * T, task.nu)).reshape(N, T, task.nx)
+        h = self._h(X[:, 1:], xi) if task.n_h else np.zeros((N, T, 0))
         results = []
         for i in range(N):
-            gap = np.concatenate([x0[i] - X[i, 0], (f[i] - X[i, 1:]).ravel()])
+            gap = np.concatenate([x0[i] - X[i, 0], (f[i] - X[i, 1:]).ravel(), np.maximum(h[i].ravel(), 0.0)])
             res = SolveResult(X=X[i].copy(), U=U[i].copy(), cost=float(cost[i]), iterations=int(iters[i]),
                               converged=bool(converged[i]), solve_time=float(iters[i] * per_iter),
                               max_violation=float(np.abs(gap).max()) if np.all(np.isfinite(gap)) else float("inf"),
-                              status=status[i] or "not converged", K=np.full((T, task.nu, task.ndx), np.nan),
-                              A=np.full((T, task.ndx, task.ndx), np.nan), B=np.full((T, task.ndx, task.nu), np.nan),
-                              Phi=np.full((T, task.ndx, task.ndx), np.nan), clamped=~free_keep[i],
-                              active_h=np.zeros((T, 0), dtype=bool), solver="ddp", x0=x0[i].copy(), xi=xi[i].copy())
+                              status=status[i] or "not converged", K=np.full((T, task.nu, ndx), np.nan),
+                              A=np.full((T, ndx, ndx), np.nan), B=np.full((T, ndx, task.nu), np.nan),
+                              Phi=np.full((T, ndx, ndx), np.nan), clamped=~free_keep[i],
+                              active_h=np.zeros((T, task.n_h), dtype=bool), solver="ddp", x0=x0[i].copy(),
+                              xi=xi[i].copy())
             res.batch_wall_time = wall
             if gains and converged[i]:
-                self._add_gains(res, Vx_keep[i], {key: v[i] for key, v in lin_keep.items()})
+                if self.general:
+                    self._add_general_gains(res, al.multipliers(h[i:i + 1], lam[i:i + 1], rho[i:i + 1])[0])
+                else:
+                    self._add_gains(res, Vx_keep[i], {key: v[i] for key, v in lin_keep.items()})
             results.append(res)
         return results
 
     def _step_one(self, X, U) -> np.ndarray:
         return np.asarray(self._map("sdp_ddp_step", len(X))(X.T, U.T)).T
 
-    def _line_search(self, X, U, rows, xi, d, gaps, k, K, s):
+    def _line_search(self, X, U, rows, xi, d, gaps, k, K, s, al_state):
         """Try the steps of ``ALPHAS`` on the instances ``rows`` (positions ``s`` in the active arrays); write the
-        accepted iterates into ``X``, ``U``. Returns the accepted step per instance (0: none accepted)."""
-        sub = {key: v[s] for key, v in d.items()}
+        accepted iterates into ``X``, ``U``. Returns the accepted step per instance (0: none accepted).
+        ``al_state``: every instance's ``(lam, rho)``."""
+        sub = {key: v[s] for key, v in d.items() if key != "al"}
+        lam, rho = al_state
         g, ks, Ks = gaps[s], k[s], K[s]
         d1, d2 = self._model(sub, g, ks, Ks)
         J0 = sub["J"]
@@ -365,7 +374,9 @@ class DDPSolver:
             if not len(p):
                 break
             alpha = np.full(len(p), a)
-            Xn, Un, J = self._rollout(X[rows[p]], U[rows[p]], g[p], ks[p], Ks[p], alpha, xi[rows[p]])
+            r = rows[p]
+            Xn, Un, J = self._rollout(X[r], U[r], g[p], ks[p], Ks[p], alpha, xi[r],
+                                      sub["Jm"][p] if self.general else None, (lam[r], rho[r]))
             expected = -(a * d1[p] + 0.5 * a * a * d2[p])       # the model's decrease
             actual = J0[p] - J
             good = np.isfinite(J) & np.where(expected >= 0, actual >= ACCEPT * expected, actual >= ACCEPT_NEG * expected)
@@ -373,28 +384,6 @@ class DDPSolver:
             accepted[p[good]] = a
             pending[p[good]] = False
         return accepted
-
-    def _add_gains(self, res: SolveResult, Vx: np.ndarray, lin: dict) -> None:
-        """Feedback gains at a converged solution with the exact Lagrangian Hessian (co-states ``V_x``; ``lin``:
-        ``A``, ``B``, ``lTxx`` of the iteration that found it converged)."""
-        t0 = time.perf_counter()
-        task, T = self.task, self.T
-        X, U, xi = res.X, res.U, res.xi
-        lam = -Vx[1:]                                             # d^2 [l + V_x(t+1)' f] = d^2 [l - lam' f]
-        H = self._map("sdp_ddp_hess", T)(X[:-1].T, U.T, np.repeat(xi[None], T, 0).T, lam.T)
-        s = task.nx + task.nu
-        H = _cols(H, T, s, s)
-        try:
-            K = _gains.riccati_gains_fast(self._f[f"sdp_ddp_riccati_T{T}"], lin["A"], lin["B"], H, lin["lTxx"],
-                                          res.clamped)
-            if not np.all(np.isfinite(K)):
-                raise np.linalg.LinAlgError("non-finite gains")
-        except np.linalg.LinAlgError as e:
-            res.status += f"; gains unavailable ({e})"
-        else:
-            res.A, res.B, res.K = lin["A"], lin["B"], K
-            res.Phi = res.A + res.B @ K
-        res.gain_time = time.perf_counter() - t0
 
 
 _CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
