@@ -497,7 +497,7 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     assert set(dp2.method) == {"sdp-to-ms", "sdp-to-ddp", "dp-to-ms", "dp-to-ddp"}
     assert set(d[d.task == "pendulum"].method) == {"sdp"}
     assert family_of("sdp-to-ddp") == "ddp" and family_of("sdp") == "ms" and plain_method("dp-K5-to-ddp") == "dp"
-    assert method_label("sdp-to-ddp") == "SDP (TO ddp)" and COLORS.get("sdp-to-ddp") != COLORS.get("sdp-to-ms")
+    assert method_label("sdp-to-ddp") == "SDP (TO box-FDDP)" and COLORS.get("sdp-to-ddp") != COLORS.get("sdp-to-ms")
     fig2a(dp2, "double_pendulum", tmp_path)
     tab = pd.read_csv(tmp_path / "fig2a_double_pendulum.csv")
     alone = tab[tab.curve == "TO alone"].set_index("method")["mean"].to_dict()

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.report.rows import split_family
+from sdp_cli.report.rows import TO_FAMILIES, split_family
 
 _HTA = re.compile(r"h(\d+)-ta(\d+)")
 
@@ -66,10 +66,11 @@ class _Shades(dict):
 
 
 def method_label(method: str) -> str:
-    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO ddp)``."""
+    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)`` (the loop's TO family
+    by its solver, :data:`~sdp_cli.report.rows.TO_FAMILIES`)."""
     base, family = split_family(method)
     if family:
-        return f"{method_label(base)} (TO {family})"
+        return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
     pair = _pair(method)
     if pair:
         return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
