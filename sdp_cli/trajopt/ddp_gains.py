@@ -57,17 +57,5 @@ class GainsMixin:
         res.active_h = (mu_h > 0) & (mu_h > -h)
         gfun = {"jac_f_map": self._map("sdp_jac_f", T), "hess_stage_map": self._map("sdp_hess_stage", T),
                 "hess_term": self._f["sdp_hess_term"], "chart_map": self._map("sdp_chart", T + 1)}
-        try:
-            A, B, H, HT, dh = _gains.linearize(gfun, task, X, res.U, xi, lam_gap, mu_h)
-            if res.active_h.any():
-                C = [np.zeros((0, task.ndx))] + [dh[t + 1][res.active_h[t]] for t in range(T)]
-                K, _ = _gains.riccati_gains(A, B, H, HT, res.clamped, C)
-            else:
-                K = _gains.riccati_gains_fast(self._f[f"sdp_ddp_riccati_T{T}"], A, B, H, HT, res.clamped)
-            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
-                raise np.linalg.LinAlgError("non-finite gains")
-        except np.linalg.LinAlgError as e:
-            res.status += f"; gains unavailable ({e})"
-        else:
-            res.A, res.B, res.K, res.Phi = A, B, K, A + B @ K
+        _gains.set_solution_gains(res, task, gfun, self._f[f"sdp_ddp_riccati_T{T}"], lam_gap, mu_h)
         res.gain_time = time.perf_counter() - t0

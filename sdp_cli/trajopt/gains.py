@@ -219,3 +219,24 @@ def riccati_gains(A, B, H, HT, clamped, C=None, rank_tol: float = 1e-9):
         own = C[t] if (C is not None and t > 0) else np.zeros((0, ndx))
         rows = np.vstack([own, carry]) if t > 0 else np.zeros((0, ndx))
     return K, P
+
+
+def set_solution_gains(res, task, gfun: dict, riccati, lam_gap: np.ndarray, mu_h: np.ndarray) -> None:
+    """``res.A, res.B, res.K, res.Phi`` of a converged solution ``res`` (a :class:`~sdp_cli.trajopt.solver.SolveResult`
+    with ``clamped`` and ``active_h`` set) from its multipliers: :func:`linearize` (``gfun``), then the Riccati
+    recursion with the active state constraints as equalities (:func:`riccati_gains`), or without any through the
+    compiled ``riccati`` (:func:`riccati_gains_fast`). A failure is told in ``res.status``, the gains left NaN."""
+    T = len(res.U)
+    try:
+        A, B, H, HT, dh = linearize(gfun, task, res.X, res.U, res.xi, lam_gap, mu_h)
+        if res.active_h.any():
+            C = [np.zeros((0, task.ndx))] + [dh[t + 1][res.active_h[t]] for t in range(T)]
+            K, _ = riccati_gains(A, B, H, HT, res.clamped, C)
+        else:
+            K = riccati_gains_fast(riccati, A, B, H, HT, res.clamped)
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+            raise np.linalg.LinAlgError("non-finite linearization")
+    except np.linalg.LinAlgError as e:
+        res.status += f"; gains unavailable ({e})"
+    else:
+        res.K, res.A, res.B, res.Phi = K, A, B, A + B @ K

@@ -317,20 +317,7 @@ class TrajOptSolver:
         t0 = time.perf_counter()
         task = self.task
         mu_h = lam_g[self._h_i]
-        try:
-            A, B, H, HT, dh = _gains.linearize(self._gfun, task, res.X, res.U, res.xi, lam_g[self._gap_i], mu_h)
-            act = res.active_h
-            if act.any():
-                C = [np.zeros((0, task.ndx))] + [dh[t + 1][act[t]] for t in range(self.T)]
-                K, _ = _gains.riccati_gains(A, B, H, HT, res.clamped, C)
-            else:
-                K = _gains.riccati_gains_fast(self._gfun["riccati"], A, B, H, HT, res.clamped)
-            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
-                raise np.linalg.LinAlgError("non-finite linearization")
-        except np.linalg.LinAlgError as e:
-            res.status += f"; gains unavailable ({e})"
-        else:
-            res.K, res.A, res.B, res.Phi = K, A, B, A + B @ K
+        _gains.set_solution_gains(res, task, self._gfun, self._gfun["riccati"], lam_g[self._gap_i], mu_h)
         res.gain_time = time.perf_counter() - t0
 
 
