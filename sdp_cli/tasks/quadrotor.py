@@ -153,6 +153,8 @@ class QuadrotorTask(StartGoalTask):
         self.name = name or f"quadrotor-{self.n_obstacles}"
         # results/tasks/TO_alone.md; with columns, quadrotor-9's times (an upper bound)
         self.reference_solve_s = (0.046, 112.0) if self.n_obstacles == 0 else (0.63, 120.0)
+        # box-FDDP with its augmented-Lagrangian loop (TO_alone.md, a batch of 50, measured under load)
+        self.reference_ddp_s = {0: 0.66, 1: 1.04, 3: 1.22}.get(self.n_obstacles, 7.4)
         self.T, self.dt = int(T), float(dt)
         self.model = load_model("hector")
         super().__init__()
