@@ -152,12 +152,22 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     assert "with 3 parallel workers" in r.output and sorted(p.name for p in tmp_path.rglob("*")) == before
 
 
-def test_estimate_times_a_loops_to_by_its_family():
+def test_estimate_times_a_loops_to_by_its_family(monkeypatch):
     """`--estimate` charges a loop's TO at its family's reference time: box-FDDP's where the task gives one
-    (results/tasks/TO_alone.md), multiple shooting's otherwise; single shooting's either way."""
+    (results/tasks/TO_alone.md), multiple shooting's otherwise (a user's task); single shooting's either way."""
+    from sdp_cli import tasks
     from sdp_cli.estimate import to_reference
 
     assert to_reference("double_pendulum") == (0.010, 0.155)
     assert to_reference("double_pendulum", "ddp") == (0.045, 0.155)
     assert to_reference("ur5-fixed", "ddp")[0] > to_reference("ur5-fixed")[0]
-    assert to_reference("quadrotor-0", "ddp") == to_reference("quadrotor-0")      # no DDP time: fatrop's
+    assert to_reference("quadrotor-9", "ddp") == (7.4, 120.0)      # the augmented-Lagrangian DDP: 12x fatrop's
+    real = tasks.get_task
+
+    def without_ddp_time(name, **kw):
+        t = real(name, **kw)
+        t.reference_ddp_s = None
+        return t
+
+    monkeypatch.setattr(tasks, "get_task", without_ddp_time)
+    assert to_reference("quadrotor-9", "ddp") == to_reference("quadrotor-9") == (0.63, 120.0)   # fatrop's
