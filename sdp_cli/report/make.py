@@ -208,10 +208,9 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
-           carried: list[str] = (), stage: Path | None = None) -> Path:
-    """README.md of the report in ``out``, written into ``stage`` (default ``out``); ``df``: its rows with methods
-    named as drawn (:func:`method_variants`); ``files``: the report's, in ``stage`` or kept in ``out``."""
-    stage = out if stage is None else stage
+           carried: list[str], stage: Path) -> Path:
+    """README.md of the report in ``out``, written into ``stage``; ``df``: its rows with methods named as drawn
+    (:func:`method_variants`); ``files``: the report's, in ``stage`` or kept in ``out``."""
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", _ints),
         n_traj=("n_traj", _ints),

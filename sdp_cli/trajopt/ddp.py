@@ -40,7 +40,8 @@ by an augmented-Lagrangian outer loop (:mod:`sdp_cli.trajopt.ddp_al`) whose upda
 the same batched iterations; "converged" then also requires every ``h <= H_TOL`` and the iteration count (and
 its cap) is that of all inner DDP iterations. The feedback gains of such a solution come from the same code as
 fatrop's (:func:`sdp_cli.trajopt.gains.linearize`, active state constraints as equalities), with the ambient
-co-states ``-J_-' V_x`` and the multipliers ``max(0, lam + rho h)``.
+co-states of the adjoint recursion (:func:`~sdp_cli.trajopt.ddp_model.ambient_costates`) and the multipliers
+``max(0, lam + rho h)``.
 """
 
 from __future__ import annotations
@@ -123,10 +124,9 @@ class DDPSolver(GainsMixin):
              "lux": _cols(lux, m, nu, nx).reshape(n, T, nu, nx)}
         lT, lTx, lTxx = self._map("sdp_ddp_term", n)(X[:, -1].T, xi.T)
         d["lT"], d["lTx"], d["lTxx"] = np.asarray(lT).ravel(), np.asarray(lTx).T, _cols(lTxx, n, nx, nx)
-        d["J"] = d["l"].sum(1) + d["lT"]
+        d["J"] = d["cost"] = d["l"].sum(1) + d["lT"]       # J: what the line search compares (with the penalty)
         if self.general:
-            d["al"] = al_state
-            self._general_derivatives(d, X, xi)
+            self._general_derivatives(d, X, xi, al_state)
         return d
 
     def _chart(self, X, xi):
@@ -142,16 +142,16 @@ class DDPSolver(GainsMixin):
         h = self._map("sdp_ddp_h", n * m)(X.reshape(n * m, -1).T, np.repeat(xi, m, axis=0).T)
         return np.asarray(h).T.reshape(n, m, self.task.n_h)
 
-    def _general_derivatives(self, d, X, xi):
+    def _general_derivatives(self, d, X, xi, al_state):
         """Tangent-space derivatives (:func:`~sdp_cli.trajopt.ddp_model.to_tangent`) and the penalty of the
-        state constraints on ``x_1..x_T`` (:mod:`~sdp_cli.trajopt.ddp_al`) at the instances' ``lam``, ``rho``
-        (``d["al"]``, set by the caller); ``d["Jp"]``, ``d["Jm"]``, ``d["h"]`` kept for the gaps and gains."""
+        state constraints on ``x_1..x_T`` (:mod:`~sdp_cli.trajopt.ddp_al`) at the instances'
+        ``al_state = (lam, rho)``; ``d["Jm"]`` and ``d["h"]`` kept for the gaps and the outer updates."""
         Jp, h, dh = self._chart(X, xi)
         Jm = left_inverse(Jp)
         to_tangent(d, Jp, Jm)
-        d["Jp"], d["Jm"], d["h"] = Jp, Jm, h[:, 1:]
+        d["Jm"], d["h"] = Jm, h[:, 1:]
         if self.task.n_h:
-            lam, rho = d["al"]
+            lam, rho = al_state
             g, H = al.derivatives(h[:, 1:], dh[:, 1:], lam, rho)
             d["lx"][:, 1:] += g[:, :-1]
             d["lxx"][:, 1:] += H[:, :-1]
@@ -288,7 +288,7 @@ class DDPSolver(GainsMixin):
             d = self._derivatives(Xa, Ua, xia, (lam[idx], rho[idx]))
             amb = np.concatenate([(x0[idx] - Xa[:, 0])[:, None], d["f"] - Xa[:, 1:]], axis=1)
             gaps = _mv(d["Jm"], amb) if self.general else amb       # in the tangent space of x_0..x_T
-            cost[idx] = d["J"] if not task.n_h else d["J"] - al.penalty(d["h"], lam[idx], rho[idx])
+            cost[idx] = d["cost"]
             bad = ~np.isfinite(d["J"])
             k, K, Vx, free, stop, ok = self._backward(d, np.where(np.isfinite(gaps), gaps, 0.0), Ua, reg[idx])
             Vx_keep[idx], free_keep[idx] = Vx, free
@@ -362,7 +362,7 @@ class DDPSolver(GainsMixin):
         """Try the steps of ``ALPHAS`` on the instances ``rows`` (positions ``s`` in the active arrays); write the
         accepted iterates into ``X``, ``U``. Returns the accepted step per instance (0: none accepted).
         ``al_state``: every instance's ``(lam, rho)``."""
-        sub = {key: v[s] for key, v in d.items() if key != "al"}
+        sub = {key: v[s] for key, v in d.items()}
         lam, rho = al_state
         g, ks, Ks = gaps[s], k[s], K[s]
         d1, d2 = self._model(sub, g, ks, Ks)

@@ -55,7 +55,8 @@ class GainsMixin:
               else np.zeros((T, 0, nx)))
         lam_gap = ambient_costates(_cols(Fx, T, nx, nx), np.asarray(lx).T, np.asarray(lTx).ravel(), dh, mu_h)
         res.active_h = (mu_h > 0) & (mu_h > -h)
+        chart = self._map("sdp_ddp_chart", T + 1)              # (J_+, h, dh): linearize takes (J_+, dh)
         gfun = {"jac_f_map": self._map("sdp_jac_f", T), "hess_stage_map": self._map("sdp_hess_stage", T),
-                "hess_term": self._f["sdp_hess_term"], "chart_map": self._map("sdp_chart", T + 1)}
+                "hess_term": self._f["sdp_hess_term"], "chart_map": lambda X, xi: chart(X, xi)[::2]}
         _gains.set_solution_gains(res, task, gfun, self._f[f"sdp_ddp_riccati_T{T}"], lam_gap, mu_h)
         res.gain_time = time.perf_counter() - t0

@@ -48,8 +48,8 @@ def ddp_functions(task, T: int) -> list[ca.Function]:
     and, for a :func:`general` task, ``sdp_ddp_chart(x, xi) -> (J_+ (nx, ndx), h (n_h), dh/d dx (n_h, ndx))``,
     ``sdp_ddp_h(x, xi) -> h``
     and the blocks of :func:`sdp_cli.trajopt.gains.linearize` (``sdp_jac_f``, ``sdp_hess_stage``,
-    ``sdp_hess_term``, ``sdp_jac_h``, ``sdp_chart``): the gains at a constrained or manifold solution are computed
-    as fatrop's, from the ambient multipliers (:func:`ambient_costates`).
+    ``sdp_hess_term``, ``sdp_jac_h``; its chart is ``sdp_ddp_chart``'s): the gains at a constrained or manifold
+    solution are computed as fatrop's, from the ambient multipliers (:func:`ambient_costates`).
     """
     x, u, xi = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
     lam = ca.SX.sym("lam", task.nx)
@@ -93,7 +93,7 @@ def ddp_functions(task, T: int) -> list[ca.Function]:
         hh = task.f_state_constraints(xx, xi) if task.n_h else ca.SX(0, 1)
         Jp, dh = ca.substitute([ca.jacobian(xx, dx), ca.jacobian(hh, dx)], [dx], [ca.DM.zeros(task.ndx)])
         funcs += [ca.Function("sdp_ddp_chart", [x, xi], [Jp, h, dh]), ca.Function("sdp_ddp_h", [x, xi], [h])]
-        funcs += [*stage_blocks(task), _gains.chart_function(task)]
+        funcs += stage_blocks(task)
     return funcs
 
 

@@ -280,12 +280,11 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         t = tab[tab.solver == solver]
         # TO alone once per panel: a loop-TO panel holds one family's runs; single shooting solves the same
         # instances whatever the loop's TO was
-        for f in sorted(set(t.method.map(family_of)))[:1]:
-            base = _to_alone_once(t[t.method.map(family_of) == f])
-            what = f"TO alone (naive guess, {len(base)} instances)"
-            ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
-                    color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
-                    label=f"{what}, mean {base.mean():.0f}")
+        f = min(t.method.map(family_of))
+        base = _to_alone_once(t[t.method.map(family_of) == f])
+        ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
+                color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
+                label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
         for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
             ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,

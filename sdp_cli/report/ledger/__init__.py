@@ -72,10 +72,6 @@ class Params(dict):
         raise SdpError(f"claim {self.cid}: results/claims.yaml gives no {key!r} (in its params or the shared rules)")
 
 
-#: how the ledger names a TO family; ``ms`` is the main one, judged first
-FAMILIES = TO_FAMILIES
-
-
 def _shared(key: str) -> bool:
     return key.startswith(("bench/", "estimates/"))
 
@@ -106,7 +102,7 @@ def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
     reports = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
     if reports and all(last_iteration(d).empty for d in reports):
         return Row("partway (no run finished yet)", "not run", "; ".join(u for u in map(unfinished, reports) if u))
-    return _judge(c, res, rules, FAMILIES.get(fam, fam))
+    return _judge(c, res, rules, TO_FAMILIES.get(fam, fam))
 
 
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
@@ -123,7 +119,7 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
         if more:
             parts = [("ms", row)] + more
-            name = lambda f: FAMILIES.get(f, f)   # noqa: E731
+            name = lambda f: TO_FAMILIES.get(f, f)   # noqa: E731
             row = Row("; ".join(f"TO by {name(f)}: {r.ours or '—'}" for f, r in parts),
                       parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
                       "; ".join(f"{r.verdict} ({name(f)})" for f, r in parts),
