@@ -3,12 +3,24 @@
 __version__ = "0.1.0"
 
 #: Version of what runs measure. A commit that changes the numbers a run produces (chunk sampling, a
-#: task's definition, a loss, a solver's stopping rule, ...) bumps it; a comment, a refactor or a
-#: report change does not. Every loop run records it (``loop_config.json``), and the DVC stage starts
-#: over (after moving the old folder aside, never deleting it) only runs of another results version
-#: or other settings. History: 1 = everything before 2026-11-27; 2 = chunks cover the episode end,
-#: UR5 and quadrotor redefined (issue "A perfect learner must score TO's cost"); 3 = UR5 random
-#: targets kept 0.1 m inside the arm's reach (at most 0.85 m from the shoulder), same issue; 4 = the
-#: trainer's fused AdamW and foreach EMA, and one-iteration runs trained in stacks (issue "Many runs at
-#: once": the same arithmetic, rounded otherwise, so a seed's training takes another path).
+#: task's definition, a loss, a solver's stopping rule, ...) bumps it and says what changed in
+#: :data:`RESULTS_HISTORY`; a comment, a refactor or a report change does not. Every loop run records it
+#: (``loop_config.json``; runs before version 4 did not: the report reads it from their code revision,
+#: sdp_cli/report/versions.py), and the DVC stage starts over (after moving the old folder aside, never
+#: deleting it) only runs of another results version or other settings. The literal below is what the report
+#: parses at an old revision: keep it an integer literal.
 RESULTS_VERSION = 4
+
+#: What each results version changed (the ledger, results/PAPER.md, prints the entries newer than its oldest run).
+RESULTS_HISTORY = {
+    1: "everything before 2026-11-27",
+    2: ("chunks cover the episode end (before, a perfect learner, the nearest-neighbour memorizer of the training "
+        "chunks, scored 1479x and 2921x TO's cost on its own UR5 training instances at (T_h 64, T_a 63)); UR5 "
+        "redefined (one step late cost 33-106x its optimum: a stop-timing test) and the quadrotor too (its optimum "
+        "ended 55-72% of the success tolerance from the goal, still moving), so that a policy without a time input "
+        "can match the optimum (issue \"A perfect learner must score TO's cost\"; results/tasks/timing.md, "
+        "results/tasks/confirmation.md)"),
+    3: "UR5 random targets kept 0.1 m inside the arm's reach (at most 0.85 m from the shoulder)",
+    4: ("the trainer's fused AdamW and foreach EMA, and one-iteration runs trained in stacks (issue \"Many runs at "
+        "once\": the same arithmetic rounded otherwise, so a seed's training takes another path)"),
+}

@@ -95,6 +95,42 @@ def test_rows_of_another_to_family_are_judged_apart(tmp_path):
     assert "TO by box-FDDP: runs not finished (left out): " in got[5]["detail"]
 
 
+def test_rows_name_the_results_version_of_their_runs(tmp_path):
+    """Each row names the results version of the runs it reads, per TO family where they differ, and the header
+    says what changed after the oldest (a verdict on runs made before the chunks covered the episode end must
+    not read as one on the current code)."""
+    from sdp_cli import RESULTS_HISTORY, RESULTS_VERSION
+    from sdp_cli.report.ledger import load_results
+
+    _copy_reports(tmp_path)
+    claims, rules = read_claims(tmp_path / "claims.yaml")
+    for p in tmp_path.glob("*/all_runs.csv"):
+        pd.read_csv(p).assign(results_version=RESULTS_VERSION).to_csv(p, index=False)
+    got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
+    assert got[11]["runs"] == ""                                           # a bench: no runs
+    assert {got[i]["runs"] for i in got if i != 11} == {str(RESULTS_VERSION)}
+    text = write_ledger(tmp_path / "PAPER.md").read_text()
+    assert f"Results version now: {RESULTS_VERSION}" in text and "What changed since" not in text
+    path = tmp_path / "fig2" / "all_runs.csv"
+    d = pd.read_csv(path)
+    ms = (d["to"].astype(object).where(d["to"].notna(), "ms") == "ms") if "to" in d else pd.Series(True, d.index)
+    if ms.all():                                                       # give fig2 a box-FDDP family of its own
+        d = pd.concat([d, d.assign(to="ddp", run=d.run + "-ddp")], ignore_index=True)
+        ms = pd.Series([True] * (len(d) // 2) + [False] * (len(d) // 2))
+    d.loc[ms.values, "results_version"] = 1
+    d.to_csv(path, index=False)
+    got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
+    assert got[5]["runs"] == f"1 (fatrop); {RESULTS_VERSION} (box-FDDP)"
+    assert got[1]["runs"] == str(RESULTS_VERSION)                          # fig1 untouched
+    text = write_ledger(tmp_path / "PAPER.md").read_text()
+    assert f"| 1 (fatrop); {RESULTS_VERSION} (box-FDDP) | **" in text
+    assert all(f"- version {v}: {RESULTS_HISTORY[v]}." in text for v in range(2, RESULTS_VERSION + 1))
+    p = tmp_path / "fig1" / "all_runs.csv"
+    pd.read_csv(p).assign(results_version=None).to_csv(p, index=False)      # unknown (git did not know)
+    got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
+    assert got[2]["runs"] == "unknown"
+
+
 def test_every_claim_has_a_row_and_a_verdict():
     claims, _ = read_claims(RESULTS / "claims.yaml")
     assert [c["id"] for c in claims] == list(range(1, 14))

@@ -528,8 +528,8 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
 
 def test_readme_names_the_results_version_of_each_runs_rows():
     """Loops record the results version (what runs measure) in their rows since version 4: the README's revision
-    table gives it per task, method and revision; rows of older runs say it was not recorded; reports whose
-    rows have none keep the table without the column."""
+    table gives it per task, method and revision; a row whose version is unknown (not recorded, and git does not
+    know its revision) says so; reports whose rows have none keep the table without the column."""
     import pandas as pd
 
     from sdp_cli.report.make import revision_lines
@@ -539,7 +539,7 @@ def test_readme_names_the_results_version_of_each_runs_rows():
     lines = revision_lines(rows)
     assert "| task | method | seeds | iterations | revision | results version |" in lines
     assert "| pendulum | sdp | 0,1 | 0 | `abc` | 4 |" in lines
-    assert "| pendulum | dp | 0 | 0 | `old` | not recorded (< 4) |" in lines
+    assert "| pendulum | dp | 0 | 0 | `old` | unknown |" in lines
     old = revision_lines(rows.drop(columns="results_version"))
     assert "| task | method | seeds | iterations | revision |" in old and "| pendulum | dp | 0 | 0 | `old` |" in old
 
@@ -577,3 +577,52 @@ def test_a_report_interrupted_midway_leaves_the_earlier_one_as_it_was(tmp_path, 
     written = make_report(tmp_path / "empty", out, experiment="small", keep_missing=True)
     assert all(p.is_file() and out in p.parents for p in written)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "small"]
+
+
+def test_results_version_of_rows_without_one_is_read_from_their_code_revision(tmp_path):
+    """Runs before results version 4 did not record it: the report gives each such row the
+    ``RESULTS_VERSION`` literal at its code revision (1 before the constant existed, the older of a
+    ``rollouts+refinement`` pair, unknown where git cannot tell), and keeps a recorded one as it is."""
+    import math
+    import subprocess
+
+    import pandas as pd
+
+    from sdp_cli.report.versions import version_at, version_text, with_results_version
+
+    repo = tmp_path / "repo"
+    (repo / "sdp_cli").mkdir(parents=True)
+    git = lambda *a: subprocess.run(["git", *a], cwd=repo, check=True, capture_output=True, text=True).stdout.strip()  # noqa: E731
+    git("init", "-q")
+    revs = []
+    for text in ('__version__ = "0.1.0"\n', "RESULTS_VERSION = 2\n", "RESULTS_VERSION = 3  \n",
+                 "RESULTS_VERSION = max(HISTORY)\n"):
+        (repo / "sdp_cli" / "__init__.py").write_text(text)
+        git("add", "-A")
+        git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+        revs.append(git("rev-parse", "HEAD"))
+    assert [version_at(r, repo) for r in revs[:3]] == [1.0, 2.0, 3.0]
+    assert math.isnan(version_at(revs[3], repo))                       # not an integer literal: unknown
+    assert math.isnan(version_at("0" * 40, repo)) and math.isnan(version_at("unknown", repo))
+    df = pd.DataFrame({"git_rev": [revs[0], f"{revs[1]}+dirty", f"{revs[2]}+{revs[1]}", "unknown", revs[0]],
+                       "results_version": [None, None, None, None, 4]})
+    got = with_results_version(df, repo).results_version.tolist()
+    assert got[:3] == [1.0, 2.0, 2.0] and math.isnan(got[3]) and got[4] == 4.0
+    assert with_results_version(df.drop(columns="results_version"), repo).results_version.tolist()[4] == 1.0
+    assert version_text(got) == "1, 2, 4, unknown" and version_text([4.0, 4.0]) == "4"
+    assert version_text([math.nan]) == "unknown"
+
+
+def test_results_version_at_this_repository_head():
+    """The literal the report parses at an old revision is the one the package runs with."""
+    import subprocess
+    from pathlib import Path
+
+    import sdp_cli
+    from sdp_cli.report.versions import version_at
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(sdp_cli.__file__).parents[1],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    assert version_at(head) == sdp_cli.RESULTS_VERSION
+    assert max(sdp_cli.RESULTS_HISTORY) == sdp_cli.RESULTS_VERSION
+    assert sorted(sdp_cli.RESULTS_HISTORY) == list(range(1, sdp_cli.RESULTS_VERSION + 1))

@@ -37,6 +37,7 @@ from sdp_cli.report.estimates import estimated_hours
 from sdp_cli.report.rows import largest_budget, loop_t_a, method_variants
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 from sdp_cli.report.figures.style import save_csv
+from sdp_cli.report.versions import with_results_version
 
 
 def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:
@@ -124,6 +125,7 @@ def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
         if df.empty:
             raise SdpError(f"no evaluation of the current experiment {experiment or runs.name!r} in {runs}; "
                            f"run `dvc repro` first")
+    df = with_results_version(df)
     written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), stage / "all_runs.csv")]
     from sdp_cli.report.figures import FIGURES
     from sdp_cli.report.figures.curves import training_curves
@@ -194,10 +196,11 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
         return []
     versions = "results_version" in revs
     lines = ["", "## Code revisions of the runs (from the evaluation manifests)", ""]
-    if versions:   # what the runs measure (sdp_cli.RESULTS_VERSION); not recorded by runs before version 4
-        revs = revs.assign(results_version=revs.results_version.map(
-            lambda v: "not recorded (< 4)" if pd.isna(v) else str(int(v))))
-        lines += ["| task | method | seeds | iterations | revision | results version |", "|---|---|---|---|---|---|"]
+    if versions:   # what the runs measure (sdp_cli.RESULTS_VERSION; before version 4: of the revision, versions.py)
+        revs = revs.assign(results_version=revs.results_version.map(lambda v: "unknown" if pd.isna(v) else str(int(v))))
+        lines += ["The results version (`sdp_cli.RESULTS_VERSION`: what a run measures) is the run's own record since "
+                  "version 4, before that the version of its revision's code.", "",
+                  "| task | method | seeds | iterations | revision | results version |", "|---|---|---|---|---|---|"]
     else:
         lines += ["| task | method | seeds | iterations | revision |", "|---|---|---|---|---|"]
     for key, g in revs.groupby(["task", "method", "git_rev"] + (["results_version"] if versions else [])):

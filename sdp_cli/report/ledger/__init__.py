@@ -16,7 +16,10 @@ verdicts of :mod:`sdp_cli.report.ledger.verdicts`, the same for every claim:
 - a claim whose experiment has no report is *not run*, with the estimate from ``claims.yaml``;
   one with only part of its runs says *partly* and which part is missing;
 - a report with runs of two TO families (``to``: fatrop's multiple shooting, box-FDDP, the paper's family) is
-  judged per family, and a claim that needs it gives both, with one verdict where they agree.
+  judged per family, and a claim that needs it gives both, with one verdict where they agree;
+- every row names the results version (:data:`sdp_cli.RESULTS_VERSION`, :mod:`sdp_cli.report.versions`) of the
+  runs it reads, and the header says what changed since the oldest of them (:data:`sdp_cli.RESULTS_HISTORY`):
+  a verdict on runs of an older version is what those runs measured, not what the current code does.
 
 The diffusion policies' rows are those at the T_a evaluated at every loop iteration (the training
 T_a); "solves" means a success rate of at least 50% over the test instances.
@@ -34,6 +37,7 @@ from sdp_cli.report.ledger.rules import RULES, Row
 from sdp_cli.report.ledger.verdicts import pct_text
 from sdp_cli.report.rows import TO_FAMILIES, last_iteration, to_family, unfinished
 from sdp_cli.report.estimates import read_estimate
+from sdp_cli.report.versions import version_text
 
 
 def load_results(results: Path) -> dict[str, pd.DataFrame]:
@@ -105,18 +109,27 @@ def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
     return _judge(c, res, rules, TO_FAMILIES.get(fam, fam))
 
 
+def _run_versions(c: dict, res: dict) -> str:
+    """The results versions of the rows of the reports claim ``c`` needs (``""``: it reads none, a bench)."""
+    frames = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
+    vs = [v for d in frames for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
+    return version_text(vs) if vs else ""
+
+
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
     """One row per claim: its rule (``rule:``, from :data:`RULES`) on ``res`` with the claim's ``params`` over the
     shared ``rules``, or *not run* when an experiment it ``needs`` has no report. Where the reports it needs
     also hold runs of another TO family (:func:`load_results`), the rule judges each family apart and the row
-    gives both (``TO by fatrop: ...; TO by box-FDDP: ...``), with one verdict where they agree."""
+    gives both (``TO by fatrop: ...; TO by box-FDDP: ...``), with one verdict where they agree. ``runs``: the
+    results versions of the rows read (per family where they differ: ``1 (fatrop); 4 (box-FDDP)``)."""
     others = sorted({k.rsplit("/", 1)[1] for k in res if "/" in k and not _shared(k)})
     rows = []
     for c in claims:
         row = _judge(c, res, rules)
-        more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in others
-                if _available(c["needs"], _family_results(res, f))
+        fams = [f for f in others if _available(c["needs"], _family_results(res, f))
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
+        more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in fams]
+        versions = [("ms", _run_versions(c, res))] + [(f, _run_versions(c, _family_results(res, f))) for f in fams]
         if more:
             parts = [("ms", row)] + more
             name = lambda f: TO_FAMILIES.get(f, f)   # noqa: E731
@@ -124,7 +137,9 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
                       parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
                       "; ".join(f"{r.verdict} ({name(f)})" for f, r in parts),
                       " ".join(f"TO by {name(f)}: {r.detail.rstrip('.')}." for f, r in parts if r.detail))
-        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail})
+        runs = (versions[0][1] if len({v for _, v in versions}) == 1 else
+                "; ".join(f"{v or '—'} ({TO_FAMILIES.get(f, f)})" for f, v in versions))
+        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail, "runs": runs})
     return rows
 
 
@@ -158,6 +173,24 @@ def _share(x: float) -> str:
     return {0.5: "half", 0.1: "a tenth"}.get(x, pct_text(x))
 
 
+def _version_lines(rows: list[dict]) -> list[str]:
+    """The header's paragraph on results versions: the current one, and what changed after the oldest one
+    a row reads (:data:`sdp_cli.RESULTS_HISTORY`)."""
+    from sdp_cli import RESULTS_HISTORY, RESULTS_VERSION
+
+    used = {int(v) for r in rows for part in r["runs"].split("; ") for v in part.split(" (")[0].split(", ")
+            if v.isdigit()}
+    lines = [f"Results version now: {RESULTS_VERSION} (`sdp_cli.RESULTS_VERSION`, what a run measures). The column "
+             "*runs' results version* gives the version of the runs each row reads (recorded by a run since "
+             "version 4, before that the version of its code revision); a verdict on runs of an older version is "
+             "what those runs measured, not what the current code does, until they are re-made."]
+    newer = [v for v in sorted(RESULTS_HISTORY) if used and min(used) < v <= RESULTS_VERSION]
+    if newer:
+        lines += ["", "What changed since the oldest of them:", ""]
+        lines += [f"- version {v}: {RESULTS_HISTORY[v]}." for v in newer]
+    return lines + [""]
+
+
 def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Path:
     """Write the ledger ``path`` (``results/PAPER.md``) from the reports in its folder."""
     path = Path(path)
@@ -174,11 +207,12 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
              "*partly* with",
              f"at least {_share(rules['partly'])} of it; a policy *solves* a task at >= {pct_text(rules['solved'])} "
              "success; runs that have not reached the",
-             "final iteration are left out and named; *not run* gives the estimate.", "",
-             "| # | claim | where | paper | ours | verdict |", "|---|---|---|---|---|---|"]
+             "final iteration are left out and named; *not run* gives the estimate.", ""]
+    lines += _version_lines(rows)
+    lines += ["| # | claim | where | paper | ours | runs' results version | verdict |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['id']} | {r['claim']} | {r.get('where', '')} | {r['paper']} | {r['ours'] or '—'} | "
-                     f"**{r['verdict']}** |")
+                     f"{r['runs'] or '—'} | **{r['verdict']}** |")
     lines += ["", "## Notes per claim", ""]
     for r in rows:
         text = " ".join(x.rstrip(".") + "." for x in (r["detail"], str(r.get("notes", "")).strip()) if x)
