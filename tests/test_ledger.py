@@ -183,6 +183,28 @@ def test_only_sdp_solves_needs_every_method_and_failing_baselines():
         e["method"], e["run"] = m, e.run.str.replace("-dp-", f"-{m}-")
         more.append(e)
     assert fig2_only_sdp({"fig2": pd.concat([d, *more])}).verdict == "reproduced"
+    assert "final distance" not in fig2_only_sdp({"fig2": d}).ours           # rows without the column
+
+
+def test_final_distance_and_reaching_the_goal_beside_the_cost():
+    """The ledger gives success and the final distance beside the paper's cost (claim 5), and whether TO's
+    converged solutions reach the goal beside its convergence (claim 6: box-FDDP converges on every instance to
+    optima that mostly miss it)."""
+    from sdp_cli.report.ledger.rules import fig2_to_alone
+
+    d = _fig2_rows(dp_success=0.1)
+    d["goal_distance_median"] = np.where(d.method == "sdp", np.where(d.train_seed == 0, 0.1, 0.3), 0.5)
+    r = fig2_only_sdp({"fig2": d})
+    assert "SDP 31 ± 0 (2 seeds), success 90% ± 0% (2 seeds), final distance 0.2 ± 0.196 m (2 seeds)" in r.ours
+    assert "DP 80 ± 0 (2 seeds), success 10% ± 0% (2 seeds), final distance 0.5 ± 0 m (2 seeds)" in r.ours
+    d = d.assign(to_alone_converged_rate=1.0, to_alone_iterations_mean=19.0, to_alone_cost_mean=44.0,
+                 refined_iterations_mean=6.0, ss_to_alone_converged_rate=1.0, ss_to_alone_iterations_mean=100.0,
+                 ss_refined_iterations_mean=20.0, ss_to_alone_cost_mean=34.0)
+    r = fig2_to_alone({"fig2": d}, {"fail_rate": 0.8})
+    assert "TO alone fails 0%" in r.ours and "reaching the goal" not in r.ours
+    d = d.assign(to_alone_success_rate=0.08, refined_success_rate=np.where(d.train_seed == 0, 0.2, 0.4))
+    r = fig2_to_alone({"fig2": d}, {"fail_rate": 0.8, "loop_to": "box-FDDP"})
+    assert r.ours.endswith("; reaching the goal: TO alone 8% (box-FDDP), refined from the final SDP 30% ± 20% (2 seeds)")
 
 
 def test_unfinished_runs_are_left_out_and_named():

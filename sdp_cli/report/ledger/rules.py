@@ -16,7 +16,7 @@ import pandas as pd
 
 from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
 from sdp_cli.report.rows import last_iteration, loop_t_a, per_seed, unfinished
-from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, fmt, pct_text, ratio_verdict
+from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 
 __all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
 
@@ -39,7 +39,8 @@ def fig2_only_sdp(res, p) -> Row:
             continue
         sr = per_seed(g, "success_rate")
         solved[m] = sr.mean() >= p["solved"]
-        parts.append(f"{m.upper()} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}")
+        parts.append(f"{m.upper()} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}"
+                     + distance_text(g))
     sdp = loop_t_a(d[d.method == "sdp"])
     near = ""
     k = p["near_iteration"] - 1
@@ -77,6 +78,9 @@ def fig2_to_alone(res, p) -> Row:
     ours += (f"; cost: TO alone {sdp.to_alone_cost_mean.mean():.3g} ({loop_to(p)}), "
              f"{sdp.ss_to_alone_cost_mean.mean():.3g} (single shooting), refined from the final SDP "
              f"{fmt(per_seed(sdp, 'refined_cost_mean'))}")
+    if "to_alone_success_rate" in sdp and sdp.to_alone_success_rate.notna().any():   # converged is not solved
+        ours += (f"; reaching the goal: TO alone {100 * sdp.to_alone_success_rate.mean():.0f}% ({loop_to(p)}), "
+                 f"refined from the final SDP {fmt(per_seed(sdp, 'refined_success_rate'), pct=True)}")
     hits = [f >= p["fail_rate"] for f in (fail_ms, fail_ss) if np.isfinite(f)]
     verdict = "reproduced" if hits and all(hits) else "partly" if any(hits) else "not reproduced"
     return Row(ours, verdict, unfinished(res["fig2"]))
@@ -158,7 +162,8 @@ def k_steps(res, p) -> Row:
     parts, means = [], {}
     for k, g in d.groupby("k_rollout"):
         means[int(k)] = g.policy_cost_mean.mean()
-        parts.append(f"K={int(k)}: {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(per_seed(g, 'success_rate'), pct=True)}")
+        parts.append(f"K={int(k)}: {fmt(per_seed(g, 'policy_cost_mean'))}, success "
+                     f"{fmt(per_seed(g, 'success_rate'), pct=True)}" + distance_text(g))
     to = d.to_alone_cost_mean.mean()
     k, ref = p["k"], p["reference_k"]
     if k not in means or ref not in means:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.ledger.verdicts import Row, all_any, combine, fmt, pct_text, ratio_verdict
+from sdp_cli.report.ledger.verdicts import Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 from sdp_cli.report.rows import per_seed
 
 def sdp_reaches_to(res, p) -> Row:
@@ -127,7 +127,8 @@ def pendulum_torque(res, p) -> Row:
     s3 = per_seed(sdp, "success_rate")
     dp_best = dp.groupby("n_traj").success_rate.mean()
     ok = [s3.mean() >= solved, dp_best.max() < solved]
-    return Row(f"SDP at n_traj {n3}: success {fmt(s3, pct=True)}, cost {fmt(per_seed(sdp, 'policy_cost_mean'))} "
+    return Row(f"SDP at n_traj {n3}: success {fmt(s3, pct=True)}, cost {fmt(per_seed(sdp, 'policy_cost_mean'))}"
+               f"{distance_text(sdp)} "
                f"(TO alone {pend.to_alone_cost_mean.mean():.3g}); DP's best success over n_traj "
                f"{100 * dp_best.max():.0f}% (n_traj {dp_best.idxmax():g})",
                all_any(ok))

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.rows import mean_ci
+from sdp_cli.report.rows import mean_ci, per_seed
 
 VERDICTS = ("reproduced", "partly", "not reproduced", "not run")
 
@@ -30,6 +30,14 @@ def fmt(values, digits: int = 3, pct: bool = False, unit: str = "") -> str:
     f = (lambda v: f"{100 * v:.0f}%") if pct else (lambda v: f"{v:.{digits}g}{unit}")
     ci = f" ± {f(h)}" if np.isfinite(h) else ""
     return f"{f(m)}{ci} ({n} seed{'s' if n != 1 else ''})"
+
+
+def distance_text(rows: pd.DataFrame) -> str:
+    """``", final distance 0.12 ± 0.03 m (5 seeds)"``: the per-seed median distance to the goal at the final
+    step (``goal_distance_median``) of ``rows``, beside a claim's cost and success; ``""`` where the rows lack it."""
+    if "goal_distance_median" not in rows or not rows.goal_distance_median.notna().any():
+        return ""
+    return ", final distance " + fmt(per_seed(rows, "goal_distance_median")).replace(" (", " m (", 1)
 
 
 def pct_text(share: float) -> str:
