@@ -229,8 +229,9 @@ def test_loop_figures_use_one_budget_per_method():
 
 
 def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
-    """Per group of the experiment file: runs finished (last iteration at the group's epochs), partway (named,
-    with iterations or epochs so far) and not run; no section once every run finished."""
+    """Per group of the experiment file: runs finished (last iteration at the group's epochs; those of an older
+    results version counted apart), partway (named, with iterations or epochs so far) and not run; no section
+    once every run finished at the current results version."""
     import pandas as pd
     import yaml
 
@@ -249,9 +250,9 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     cov = experiment_coverage(pd.DataFrame(rows), "x", tmp_path)
     assert cov.not_run_h.isna().all()                                 # no estimate given
     assert cov.drop(columns="not_run_h").to_dict("records") == [
-        {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1,
+        {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1, "older": 0,
          "partway": "1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3)", "not_run": 0},
-        {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1,
+        {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1, "older": 0,
          "partway": "1 (pendulum-sdp-n3-s1 1000/2000 epochs)", "not_run": 2}]
     lines = coverage_lines(pd.DataFrame(rows), "x", tmp_path)
     assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
@@ -268,6 +269,17 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
         ("pendulum-sdp-n1-s0", 1, 2000), ("pendulum-sdp-n3-s0", 1, 2000), ("pendulum-sdp-n1-s1", 1, 2000),
         ("pendulum-sdp-n3-s1", 1, 2000)) for it in range(n)]
     assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == []
+    # every run finished, two of them by code of an older results version: still to be re-made, and said so
+    from sdp_cli import RESULTS_VERSION
+
+    old = pd.DataFrame(done).assign(results_version=RESULTS_VERSION)
+    old.loc[old.run.isin(["pendulum-sdp-n1-s0", "pendulum-sdp-n3-s0"]), "results_version"] = 1
+    old.loc[old.run == "ur5-rinit-sdp-n50-s0-h64-ta63", "results_version"] = float("nan")   # unknown: not counted
+    assert experiment_coverage(old, "x", tmp_path).older.tolist() == [0, 2]
+    lines = coverage_lines(old, "x", tmp_path)
+    assert f"## Runs of `pipelines/x.yaml` in this report: 6 of 6 finished, 2 of them of an older results version than {RESULTS_VERSION}" in lines
+    assert "| pendulum sdp, 2000 epochs | 4 | 4 (2 of an older results version) | 0 | 0 |" in lines
+    assert "| ur5-rinit sdp, dp h64-ta63 | 2 | 2 | 0 | 0 |" in lines
 
 
 def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):

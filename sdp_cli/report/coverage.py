@@ -2,7 +2,9 @@
 their last iteration, those partway (with ``evaluated / n_algo``) and those not in the report.
 
 A report drawn while runs go on (or after some were left out for lack of time) says so in its README
-instead of letting a figure pass for the whole experiment. Reads the experiment file only
+instead of letting a figure pass for the whole experiment; finished runs of an older results version than
+the code's (:data:`sdp_cli.RESULTS_VERSION`, the rows' ``results_version``) are counted apart: they are still
+to be re-made. Reads the experiment file only
 (:mod:`sdp_cli.experiment`), never the runs' folders: the rows given are what the report drew.
 """
 
@@ -22,13 +24,18 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
                         hours: dict[str, float] | None = None) -> pd.DataFrame:
     """One row per group of experiment ``name``: ``group`` (task, methods, tag or epochs), ``runs``,
     ``finished`` (every iteration evaluated, the last at the group's epochs), ``partway`` (names with
-    ``k/n_algo`` iterations, or the epochs evaluated so far), ``not_run``, and ``not_run_h``: the estimated
+    ``k/n_algo`` iterations, or the epochs evaluated so far), ``older``: the finished runs whose rows are of an
+    older results version than the code's, ``not_run``, and ``not_run_h``: the estimated
     hours of the runs not run, summed over those ``hours`` (``{run: hours}``, a saved ``--estimate``) has
     (NaN when it has none of them).
     ``df``: the report's rows (``run``, ``iteration``)."""
     spec = load_experiment(name, root)
     reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
     epochs = df.groupby("run").epochs.max().to_dict() if len(df) and "epochs" in df else {}
+    from sdp_cli import RESULTS_VERSION
+
+    version = (df.groupby("run").results_version.min().to_dict()
+               if len(df) and "results_version" in df else {})
     rows = []
     for gi, raw in group_items(spec):
         g = check_group(name, gi, raw)
@@ -42,7 +49,8 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
         named = ", ".join(part[:MAX_NAMED]) + (f" and {len(part) - MAX_NAMED} more" if len(part) > MAX_NAMED else "")
         todo = [k for k in keys if k not in done and k not in reached]
         known = [hours[k] for k in todo if k in (hours or {})]
-        rows.append({"group": label, "runs": len(keys), "finished": len(done),
+        older = sum(1 for k in done if version.get(k, RESULTS_VERSION) < RESULTS_VERSION)
+        rows.append({"group": label, "runs": len(keys), "finished": len(done), "older": older,
                      "partway": f"{len(part)}" + (f" ({named})" if part else ""),
                      "not_run": len(todo), "not_run_h": sum(known) if known else float("nan")})
     return pd.DataFrame(rows)
@@ -53,17 +61,24 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
     """The README section of :func:`experiment_coverage` (empty when every run finished); with ``hours``
     (read from ``hours_from``), the runs not run carry their estimated hours."""
     cov = experiment_coverage(df, name, root, hours)
-    if cov.empty or (cov.finished == cov.runs).all():
+    if cov.empty or ((cov.finished == cov.runs).all() and not cov.older.any()):
         return []
-    total, fin = int(cov.runs.sum()), int(cov.finished.sum())
-    lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished", "",
+    from sdp_cli import RESULTS_VERSION
+
+    total, fin, old = int(cov.runs.sum()), int(cov.finished.sum()), int(cov.older.sum())
+    lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished"
+             + (f", {old} of them of an older results version than {RESULTS_VERSION}" if old else ""), "",
              "Partway: iterations evaluated of the run's n_algo (stopped or still running); not run: no evaluation "
              "yet. Figures and the ledger use what is here." + (
+                 f" Older results version: finished by code that measured otherwise than version {RESULTS_VERSION} "
+                 "(the revision table below), to be re-made." if old else "") + (
                  f" Hours of the runs not run: `sdp pipeline {name} --estimate` as saved in `{hours_from}` "
                  "(every stage, one process on the CPU)." if hours else ""), "",
              "| group | runs | finished | partway | not run |", "|---|---|---|---|---|"]
 
     def todo(r) -> str:
         return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and pd.notna(r.not_run_h) else "")
-    lines += [f"| {r.group} | {r.runs} | {r.finished} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]
+    def fin_cell(r) -> str:
+        return f"{r.finished}" + (f" ({r.older} of an older results version)" if r.older else "")
+    lines += [f"| {r.group} | {r.runs} | {fin_cell(r)} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]
     return lines
