@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from sdp_cli import RESULTS_VERSION
 from sdp_cli.experiment import check_group, group_items, group_run_names, load_experiment
 
 #: partway runs named per group before "and N more"
@@ -32,8 +33,6 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
     spec = load_experiment(name, root)
     reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
     epochs = df.groupby("run").epochs.max().to_dict() if len(df) and "epochs" in df else {}
-    from sdp_cli import RESULTS_VERSION
-
     version = (df.groupby("run").results_version.min().to_dict()
                if len(df) and "results_version" in df else {})
     rows = []
@@ -63,8 +62,6 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
     cov = experiment_coverage(df, name, root, hours)
     if cov.empty or ((cov.finished == cov.runs).all() and not cov.older.any()):
         return []
-    from sdp_cli import RESULTS_VERSION
-
     total, fin, old = int(cov.runs.sum()), int(cov.finished.sum()), int(cov.older.sum())
     lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished"
              + (f", {old} of them of an older results version than {RESULTS_VERSION}" if old else ""), "",
@@ -78,6 +75,7 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
 
     def todo(r) -> str:
         return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and pd.notna(r.not_run_h) else "")
+
     def fin_cell(r) -> str:
         return f"{r.finished}" + (f" ({r.older} of an older results version)" if r.older else "")
     lines += [f"| {r.group} | {r.runs} | {fin_cell(r)} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]

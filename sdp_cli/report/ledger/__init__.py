@@ -99,21 +99,25 @@ def _judge(c: dict, res: dict, rules: dict | None, loop_to: str | None = None) -
         raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
 
 
+def _reports(c: dict, res: dict) -> list[pd.DataFrame]:
+    """The report rows claim ``c`` needs that ``res`` holds (bench results and estimates left out)."""
+    return [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
+
+
 def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
     """:func:`_judge` on the TO family ``fam``'s reports (the rules name the loop's TO by the family's solver),
     which may hold only runs partway (a re-run filling up): *not run* until one of its runs has reached its
     loop's final iteration, naming the runs partway."""
-    reports = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
+    reports = _reports(c, res)
     if reports and all(last_iteration(d).empty for d in reports):
         return Row("partway (no run finished yet)", "not run", "; ".join(u for u in map(unfinished, reports) if u))
     return _judge(c, res, rules, TO_FAMILIES.get(fam, fam))
 
 
-def _run_versions(c: dict, res: dict) -> str:
-    """The results versions of the rows of the reports claim ``c`` needs (``""``: it reads none, a bench)."""
-    frames = [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
-    vs = [v for d in frames for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
-    return version_text(vs) if vs else ""
+def _run_versions(c: dict, res: dict) -> list[float]:
+    """The results version of every row of the reports claim ``c`` needs (NaN: unknown; empty: a bench)."""
+    return [v for d in _reports(c, res)
+            for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
 
 
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
@@ -121,7 +125,8 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
     shared ``rules``, or *not run* when an experiment it ``needs`` has no report. Where the reports it needs
     also hold runs of another TO family (:func:`load_results`), the rule judges each family apart and the row
     gives both (``TO by fatrop: ...; TO by box-FDDP: ...``), with one verdict where they agree. ``runs``: the
-    results versions of the rows read (per family where they differ: ``1 (fatrop); 4 (box-FDDP)``)."""
+    results versions of the rows read (per family where they differ: ``1 (fatrop); 4 (box-FDDP)``), ``versions``
+    the known ones as a set."""
     others = sorted({k.rsplit("/", 1)[1] for k in res if "/" in k and not _shared(k)})
     rows = []
     for c in claims:
@@ -130,6 +135,7 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
         more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in fams]
         versions = [("ms", _run_versions(c, res))] + [(f, _run_versions(c, _family_results(res, f))) for f in fams]
+        texts = [(f, version_text(vs) if vs else "") for f, vs in versions]
         if more:
             parts = [("ms", row)] + more
             name = lambda f: TO_FAMILIES.get(f, f)   # noqa: E731
@@ -137,9 +143,11 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
                       parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
                       "; ".join(f"{r.verdict} ({name(f)})" for f, r in parts),
                       " ".join(f"TO by {name(f)}: {r.detail.rstrip('.')}." for f, r in parts if r.detail))
-        runs = (versions[0][1] if len({v for _, v in versions}) == 1 else
-                "; ".join(f"{v or '—'} ({TO_FAMILIES.get(f, f)})" for f, v in versions))
-        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail, "runs": runs})
+        runs = (texts[0][1] if len({t for _, t in texts}) == 1 else
+                "; ".join(f"{t or '—'} ({TO_FAMILIES.get(f, f)})" for f, t in texts))
+        known = {int(v) for _, vs in versions for v in vs if pd.notna(v)}
+        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail, "runs": runs,
+                     "versions": known})
     return rows
 
 
@@ -178,8 +186,7 @@ def _version_lines(rows: list[dict]) -> list[str]:
     a row reads (:data:`sdp_cli.RESULTS_HISTORY`)."""
     from sdp_cli import RESULTS_HISTORY, RESULTS_VERSION
 
-    used = {int(v) for r in rows for part in r["runs"].split("; ") for v in part.split(" (")[0].split(", ")
-            if v.isdigit()}
+    used = set().union(*(r["versions"] for r in rows))
     lines = [f"Results version now: {RESULTS_VERSION} (`sdp_cli.RESULTS_VERSION`, what a run measures). The column "
              "*runs' results version* gives the version of the runs each row reads (recorded by a run since "
              "version 4, before that the version of its code revision); a verdict on runs of an older version is "
