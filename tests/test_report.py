@@ -522,8 +522,14 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     fig1(dp2, "double_pendulum", tmp_path)      # a TO-alone line per family, not one mixing both
     f1 = pd.read_csv(tmp_path / "fig1_double_pendulum.csv").set_index("method")
     assert f1.loc["dp-to-ddp", "to_alone_mean"] == 45.2 and f1.loc["dp-to-ms", "to_alone_mean"] == 31.5
-    lines = {ln.get_label(): ln.get_ydata()[0] for ln in figs[0].axes[0].lines if ln.get_label().startswith("TO")}
-    assert lines == {"TO alone (fatrop)": 31.5, "TO alone (box-FDDP)": 45.2}
+    # one row of panels per family (16 curves in one panel were unreadable), on the same cost axis
+    cost_axes = figs[0].axes[0::2]
+    lines = [{ln.get_label(): ln.get_ydata()[0] for ln in a.lines if ln.get_label().startswith("TO")} for a in cost_axes]
+    assert lines == [{"TO alone (fatrop)": 31.5}, {"TO alone (box-FDDP)": 45.2}]
+    drawn = [{t.get_label().split(" (")[0] + " " + t.get_label().split("(")[1].split(")")[0]
+              for t in a.containers} for a in cost_axes]
+    assert drawn == [{"SDP TO fatrop", "DP TO fatrop"}, {"SDP TO box-FDDP", "DP TO box-FDDP"}]
+    assert cost_axes[0].get_ylim() == cost_axes[1].get_ylim()
 
     class Carried:      # an earlier report's per-instance iterations (the runs' files gone)
         def rows(self, name, task, last):

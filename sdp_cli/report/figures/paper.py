@@ -43,7 +43,8 @@ def _mark_reaching_zero(ax, x, mean, ci, color) -> None:
 def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     """Fig. 1: the paper's quantity, the mean policy cost per dataset size (∞ where one diverged rollout
     made the mean infinite), and beside it the policy's success rate, which the mean hides then.
-    One curve per (method, epochs), shifted a little along n_traj so that equal values stay visible."""
+    One curve per (method, epochs), shifted a little along n_traj so that equal values stay visible; a task
+    run with two TO families draws one row of panels per family (same axes), each with its TO-alone line."""
     d = df[(df.task == task) & (df.iteration == 0)]
     if d.empty or d["n_traj"].isna().all():
         return []
@@ -55,13 +56,32 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     to_by = _to_alone_by_family(d)      # one TO-alone line per TO family of the drawn runs
     tab["to_alone_mean"] = tab.method.map(family_of).map(to_by).astype(float)
     tos = [v for v in to_by.values() if np.isfinite(v)]
-    plt = pyplot()
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [3, 2]})
     finite = tab["mean"][np.isfinite(tab["mean"]) & (tab["mean"] < DIVERGED)]
     high = max(float(finite.max()) if len(finite) else 1.0, max(tos, default=0))
     low = min(float(finite.min()) if len(finite) else high, min(tos, default=high))
     log_y = low > 0 and high * 1.3 / low > 300   # one outlier flattens the rest on a linear axis: log, as the spread
     top = high * (4 if log_y else 1.3)   # the ∞ rows: a band above every mean (a factor 1.3 is 0.1 decade)
+    families = sorted(set(tab.method.map(family_of)), key=lambda f: (f != "ms", f))
+    plt = pyplot()
+    fig, axes = plt.subplots(len(families), 2, figsize=(10, 4 * len(families)), squeeze=False,
+                             gridspec_kw={"width_ratios": [3, 2]})
+    for (ax, ax2), f in zip(axes, families):
+        _fig1_row(ax, ax2, tab[tab.method.map(family_of) == f], log_y, top)
+        v = to_by.get(f, np.nan)
+        if np.isfinite(v):
+            ax.axhline(v, color="black", ls=":", label="TO alone" + (f" ({TO_FAMILIES.get(f, f)})" if len(to_by) > 1 else ""))
+        ax.set_ylim(*((low / _bottom_room(tab), top * 1.05) if log_y else (0, top * 1.05)))
+        which = f", TO {TO_FAMILIES.get(f, f)}" if len(families) > 1 else ""
+        ax.set_title(f"Fig. 1 — sample efficiency, {task}{which}", fontsize=10)
+        ax2.set_title("policy success rate" + which, fontsize=10)
+        ax2.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="upper left",
+                   bbox_to_anchor=(1.02, 1.0))   # beside the axes, never over the data
+    fig.tight_layout()
+    return [save_csv(tab, out / f"fig1_{task}.csv"), save_fig(fig, out / f"fig1_{task}.png")]
+
+
+def _fig1_row(ax, ax2, tab: pd.DataFrame, log_y: bool, top: float) -> None:
+    """One row of Fig. 1: ``tab``'s curves (cost, success rate) over n_traj, on axes scaled by the caller."""
     curves = sorted(tab.groupby(["method", "epochs"]), key=lambda c: (method_order(c[0][0]), c[0][1]))
     if log_y:
         ax.set_yscale("log")
@@ -78,10 +98,6 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                         ha="center", va="top", fontsize=11, color=kw["color"])
         if "success_mean" in g:
             ax2.errorbar(g["n_traj"] * shift, g["success_mean"], yerr=g["success_ci95"].fillna(0), **kw)
-    for f, v in sorted(to_by.items(), key=lambda fv: fv[0] != "ms"):
-        if np.isfinite(v):
-            ax.axhline(v, color="black" if f == "ms" else "0.55", ls=":",
-                       label="TO alone" + (f" ({TO_FAMILIES.get(f, f)})" if len(to_by) > 1 else ""))
     n_all = tab["n_traj"].astype(float)
     from matplotlib.ticker import FixedLocator, NullFormatter, StrMethodFormatter
 
@@ -92,19 +108,9 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         a.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
         a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("n_traj (trajectories in the dataset)")
-    if log_y:
-        ax.set_ylim(low / _bottom_room(tab), top * 1.05)
-    else:
-        ax.set_ylim(0, top * 1.05)
     ax.set_ylabel("mean cost on test instances (∞: mean > 1e5)")
-    ax.set_title(f"Fig. 1 — sample efficiency, {task}", fontsize=10)
     ax2.set_ylim(-0.03, 1.03)
     ax2.set_ylabel("share of policy rollouts reaching the goal")
-    ax2.set_title("policy success rate", fontsize=10)
-    ax2.legend(*ax.get_legend_handles_labels(), fontsize=8, loc="upper left",
-               bbox_to_anchor=(1.02, 1.0))   # beside the axes, never over the data
-    fig.tight_layout()
-    return [save_csv(tab, out / f"fig1_{task}.csv"), save_fig(fig, out / f"fig1_{task}.png")]
 
 
 def budget_title(d: pd.DataFrame) -> str:
