@@ -108,25 +108,41 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 
 def pack(runs: dict, stack: int) -> list[list[str]]:
     """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): one-iteration runs of
-    a stackable, compatible training config (:func:`sdp_cli.train_stack.stack_key`) share stacks of up to
-    ``stack`` runs, ordered by dataset size (a stack pads its members' batches to its largest, so runs of one
-    size go together), then by the experiment's order; every other run (loops of several iterations: collect ->
-    train -> evaluate each iteration, so their stacks would wait on each other's collections) is a job of its own.
-    Stacks first, then the runs alone; the same experiment gives the same jobs on every machine."""
+    a stackable, compatible training config (:func:`sdp_cli.train_stack.stack_key`) and of one dataset size share
+    stacks of up to ``stack`` runs (a group larger than ``stack`` is split into near-equal stacks, in the
+    experiment's order); every other run (loops of several iterations: collect -> train -> evaluate each
+    iteration, so their stacks would wait on each other's collections) is a job of its own. One size per stack:
+    a stack pads its members' batches to its largest, so filling stacks across sizes (until 2026-11-27) spent
+    1.25-1.35x the time on padding rows (``bench/stack_packing.py``). Stacks first, the larger datasets first
+    within a training config (the longest jobs start first), then the runs alone; the same experiment gives the
+    same jobs on every machine."""
     from sdp_cli.train_stack import stack_key, stackable
 
     groups: dict = {}
     alone: list[list[str]] = []
     for name, cfg in runs.items():
         if stack > 1 and cfg.n_algo == 1 and stackable(cfg.train):
-            groups.setdefault(stack_key(cfg.task, cfg.train), []).append(name)
+            groups.setdefault(stack_key(cfg.task, cfg.train), {}).setdefault(cfg.n_traj_at(0), []).append(name)
         else:
             alone.append([name])
     jobs = []
-    for names in groups.values():
-        names = sorted(names, key=lambda n: runs[n].n_traj_at(0))     # stable: the experiment's order within a size
-        jobs += [names[i:i + stack] for i in range(0, len(names), stack)]
+    for sizes in groups.values():
+        for n_traj in sorted(sizes, reverse=True):
+            jobs += split_even(sizes[n_traj], stack)
     return jobs + alone
+
+
+def split_even(names: list[str], most: int) -> list[list[str]]:
+    """``names`` in order, cut into ``ceil(len / most)`` consecutive parts whose lengths differ by at most one
+    (10 runs at most 8: 5 + 5, not 8 + 2)."""
+    k = -(-len(names) // most)
+    q, r = divmod(len(names), k)
+    out, i = [], 0
+    for j in range(k):
+        n = q + (j < r)
+        out.append(names[i:i + n])
+        i += n
+    return out
 
 
 def executor_options(executor: str | None, workers: int | None, scheduler: str | None) -> tuple:

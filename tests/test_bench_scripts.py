@@ -57,3 +57,14 @@ def test_trainer_bench_compares_with_the_optimisation_of_38d2c04_and_puts_the_tr
     assert (tr.optimizer_for, tr.ema_for) == before
     opt, ema = tr.optimizer_for(cfg, params), tr.ema_for(cfg, params)
     assert opt.defaults["fused"] and ema.foreach
+
+
+def test_packing_bench_keeps_the_rule_it_compares_with():
+    """bench/stack_packing.py's "across sizes" rule is the packing until 2026-11-27: sorted by dataset size (the
+    experiment's order within a size), cut every --stack, so n_traj 8 of seed 2 shared a stack with n_traj 32."""
+    from types import SimpleNamespace
+
+    runs = {f"n{n}-s{s}": SimpleNamespace(n_traj_at=lambda k, n=n: n) for n in (32, 2, 16, 4, 8) for s in (0, 1, 2)}
+    jobs = _bench("stack_packing").across_sizes(list(runs), runs, 8)
+    assert jobs == [["n2-s0", "n2-s1", "n2-s2", "n4-s0", "n4-s1", "n4-s2", "n8-s0", "n8-s1"],
+                    ["n8-s2", "n16-s0", "n16-s1", "n16-s2", "n32-s0", "n32-s1", "n32-s2"]]

@@ -202,14 +202,18 @@ SIX = TINY.replace("seeds: [0, 1]", "seeds: [0, 1, 2]").replace("n_traj: [2]", "
 def test_compatible_runs_train_as_one_stack_and_equal_their_solo_runs(root):
     """`sdp pipeline --run` packs compatible one-iteration runs (3 seeds x 2 dataset sizes) into one stack: the
     same evaluations as the runs trained one by one, to float32 rounding."""
-    from sdp_cli.runner import pack
+    from sdp_cli.runner import pack, split_even
 
     (root / "pipelines" / "six.yaml").write_text(SIX)
     runs = loop_configs("six", __import__("sdp_cli.experiment", fromlist=["x"]).load_experiment("six", root))
-    by_size = sorted(runs, key=lambda n: runs[n].n_traj_at(0))
-    assert pack(runs, 8) == [by_size] and pack(runs, 4) == [by_size[:4], by_size[4:]]
-    assert [runs[n].n_traj_at(0) for n in by_size] == [2, 2, 2, 3, 3, 3]
+    size = {n: [r for r in runs if runs[r].n_traj_at(0) == n] for n in (2, 3)}
+    assert [len(size[2]), len(size[3])] == [3, 3]
+    # one dataset size per stack (a stack pads every batch to its largest), the larger first; split evenly
+    assert pack(runs, 8) == [size[3], size[2]] and pack(runs, 3) == [size[3], size[2]]
+    assert pack(runs, 2) == [size[3][:2], size[3][2:], size[2][:2], size[2][2:]]
     assert pack(runs, 1) == [[r] for r in runs]
+    assert split_even(list("abcdefghij"), 8) == [list("abcde"), list("fghij")]
+    assert split_even(list("abcdefg"), 3) == [list("abc"), list("de"), list("fg")] and split_even(["a"], 8) == [["a"]]
     solo = run_group("six", root / "six-solo", executor="local", workers=2, device="cpu", root=root,
                      log=lambda s: None, stack=1)
     stacked = run_group("six", root / "six-stack", executor="local", workers=2, device="cpu", root=root,
