@@ -152,6 +152,32 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     assert "with 3 parallel workers" in r.output and sorted(p.name for p in tmp_path.rglob("*")) == before
 
 
+def test_estimate_measures_every_step_on_one_thread(monkeypatch):
+    """The stacks' calibration ran after the estimate had restored the process's threads: beside two training
+    runs on 2 cores, a stack of 3 pendulum runs measured 6.7 s a step (0.1 s on one thread) and ablation_k came
+    out at 11 h. Every measurement runs on one thread, as the runs train; the threads are put back after."""
+    import torch
+
+    from sdp_cli import estimate as E
+
+    seen = []
+
+    def fake(*a, **kw):
+        seen.append(torch.get_num_threads())
+        return 0.01
+
+    monkeypatch.setattr(E, "step_seconds", fake)
+    monkeypatch.setattr(E, "stacked_step_seconds", fake)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        df, _ = E.estimate("ablation_k", budget_s=1, root=ROOT)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert (df["stack"] == 3).all() and seen == [1, 1]     # the solo calibration, then the stacks'
+
+
 def test_estimate_times_a_loops_to_by_its_family(monkeypatch):
     """`--estimate` charges a loop's TO at its family's reference time: box-FDDP's where the task gives one
     (results/tasks/TO_alone.md), multiple shooting's otherwise (a user's task); single shooting's either way."""
