@@ -249,7 +249,7 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     rows += [{"run": "elsewhere-sdp-n1-s0", "iteration": 0, "epochs": 5}]             # not a run of the experiment
     cov = experiment_coverage(pd.DataFrame(rows), "x", tmp_path)
     assert cov.not_run_h.isna().all()                                 # no estimate given
-    assert cov.drop(columns="not_run_h").to_dict("records") == [
+    assert cov.drop(columns=["not_run_h", "older_h"]).to_dict("records") == [
         {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1, "older": 0,
          "partway": "1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3)", "not_run": 0},
         {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1, "older": 0,
@@ -280,6 +280,9 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     assert f"## Runs of `pipelines/x.yaml` in this report: 6 of 6 finished, 2 of them of an older results version than {RESULTS_VERSION}" in lines
     assert "| pendulum sdp, 2000 epochs | 4 | 4 (2 of an older results version) | 0 | 0 |" in lines
     assert "| ur5-rinit sdp, dp h64-ta63 | 2 | 2 | 0 | 0 |" in lines
+    # with a saved --estimate, the hours of re-making the older runs (n1-s0 9.0 h and n3-s0 2.5 h)
+    lines = coverage_lines(old, "x", tmp_path, hours=hours, hours_from="../estimates/x.txt")
+    assert "| pendulum sdp, 2000 epochs | 4 | 4 (2 of an older results version, 11.5 h to re-make) | 0 | 0 |" in lines
 
 
 def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):

@@ -26,9 +26,9 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
     """One row per group of experiment ``name``: ``group`` (task, methods, tag or epochs), ``runs``,
     ``finished`` (every iteration evaluated, the last at the group's epochs), ``partway`` (names with
     ``k/n_algo`` iterations, or the epochs evaluated so far), ``older``: the finished runs whose rows are of an
-    older results version than the code's, ``not_run``, and ``not_run_h``: the estimated
-    hours of the runs not run, summed over those ``hours`` (``{run: hours}``, a saved ``--estimate``) has
-    (NaN when it has none of them).
+    older results version than the code's, ``older_h`` the estimated hours of re-making them, ``not_run``, and
+    ``not_run_h``: the estimated hours of the runs not run; hours are summed over those ``hours``
+    (``{run: hours}``, a saved ``--estimate``) has (NaN when it has none of them).
     ``df``: the report's rows (``run``, ``iteration``)."""
     spec = load_experiment(name, root)
     reached = (df.groupby("run").iteration.max() + 1).to_dict() if len(df) else {}
@@ -48,8 +48,10 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
         named = ", ".join(part[:MAX_NAMED]) + (f" and {len(part) - MAX_NAMED} more" if len(part) > MAX_NAMED else "")
         todo = [k for k in keys if k not in done and k not in reached]
         known = [hours[k] for k in todo if k in (hours or {})]
-        older = sum(1 for k in done if version.get(k, RESULTS_VERSION) < RESULTS_VERSION)
-        rows.append({"group": label, "runs": len(keys), "finished": len(done), "older": older,
+        older = [k for k in done if version.get(k, RESULTS_VERSION) < RESULTS_VERSION]
+        older_known = [hours[k] for k in older if k in (hours or {})]
+        rows.append({"group": label, "runs": len(keys), "finished": len(done), "older": len(older),
+                     "older_h": sum(older_known) if older_known else float("nan"),
                      "partway": f"{len(part)}" + (f" ({named})" if part else ""),
                      "not_run": len(todo), "not_run_h": sum(known) if known else float("nan")})
     return pd.DataFrame(rows)
@@ -69,14 +71,15 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
              "yet. Figures and the ledger use what is here." + (
                  f" Older results version: finished by code that measured otherwise than version {RESULTS_VERSION} "
                  "(the revision table below), to be re-made." if old else "") + (
-                 f" Hours of the runs not run: `sdp pipeline {name} --estimate` as saved in `{hours_from}` "
-                 "(every stage, one process on the CPU)." if hours else ""), "",
+                 f" Hours of the runs not run (and to re-make): `sdp pipeline {name} --estimate` as saved in "
+                 f"`{hours_from}` (every stage, one process on the CPU)." if hours else ""), "",
              "| group | runs | finished | partway | not run |", "|---|---|---|---|---|"]
 
     def todo(r) -> str:
         return f"{r.not_run}" + (f" ({r.not_run_h:.1f} h)" if r.not_run and pd.notna(r.not_run_h) else "")
 
     def fin_cell(r) -> str:
-        return f"{r.finished}" + (f" ({r.older} of an older results version)" if r.older else "")
+        h = f", {r.older_h:.1f} h to re-make" if pd.notna(r.older_h) else ""
+        return f"{r.finished}" + (f" ({r.older} of an older results version{h})" if r.older else "")
     lines += [f"| {r.group} | {r.runs} | {fin_cell(r)} | {r.partway} | {todo(r)} |" for r in cov.itertuples()]
     return lines
