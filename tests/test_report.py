@@ -647,3 +647,28 @@ def test_results_version_at_this_repository_head():
     assert version_at(head) == sdp_cli.RESULTS_VERSION
     assert max(sdp_cli.RESULTS_HISTORY) == sdp_cli.RESULTS_VERSION
     assert sorted(sdp_cli.RESULTS_HISTORY) == list(range(1, sdp_cli.RESULTS_VERSION + 1))
+
+
+def test_a_task_s_rows_of_an_older_results_version_are_not_drawn_beside_a_newer_one(tmp_path):
+    """A re-run fills a report run by run while `--keep-missing` keeps the earlier rows: UR5(0, 0) was redefined
+    between results versions 1 and 4 (TO alone 0.059 vs 6.28), so a curve or a ledger interval mixing them
+    measures nothing. Per task and TO family only the newest version is read; another family's or task's older
+    rows stay (fig2: fatrop's runs of version 1 beside box-FDDP's of version 4); rows of unknown version stay."""
+    import pandas as pd
+
+    from sdp_cli.report.ledger import load_results
+    from sdp_cli.report.rows import newest_version
+
+    rows = pd.DataFrame({
+        "run": ["u-s0", "u-s1", "u-s2", "p-s0", "p-s0-ddp", "q-s0", "u-old"],
+        "task": ["ur5-fixed"] * 3 + ["pendulum"] * 2 + ["quadrotor-0", "ur5-fixed"],
+        "to": [None, None, None, None, "ddp", None, None],
+        "results_version": [1, 4, 4, 1, 4, 1, None],
+        "policy_cost_mean": [90.0, 7.0, 8.0, 20.0, 21.0, 1.0, 50.0]})
+    kept = newest_version(rows)
+    assert list(kept.run) == ["u-s1", "u-s2", "p-s0", "p-s0-ddp", "q-s0", "u-old"]
+    assert newest_version(rows.drop(columns="results_version")).equals(rows.drop(columns="results_version"))
+    (tmp_path / "fig1").mkdir()
+    rows.to_csv(tmp_path / "fig1" / "all_runs.csv", index=False)
+    res = load_results(tmp_path)
+    assert sorted(res["fig1"].run) == ["p-s0", "q-s0", "u-old", "u-s1", "u-s2"] and list(res["fig1/ddp"].run) == ["p-s0-ddp"]

@@ -34,7 +34,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.report.carry import Carried, carried_lines, carry_over, fresh_methods
 from sdp_cli.report.coverage import coverage_lines
 from sdp_cli.report.estimates import estimated_hours
-from sdp_cli.report.rows import largest_budget, loop_t_a, method_variants
+from sdp_cli.report.rows import largest_budget, loop_t_a, method_variants, newest_version_mask
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 from sdp_cli.report.figures.style import save_csv
 from sdp_cli.report.versions import with_results_version
@@ -130,23 +130,29 @@ def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
     from sdp_cli.report.figures import FIGURES
     from sdp_cli.report.figures.curves import training_curves
 
-    fdf = method_variants(df)
+    newest = newest_version_mask(df)   # a task's rows of an older results version beside a newer one's: not drawn
+    shown, hidden = df[newest], df.run[~newest].nunique()
+    if hidden:
+        log(f"not drawn: {hidden} run(s) of an older results version than other runs of their task and TO family")
+    fdf = method_variants(shown)
+    kept_all, kept = kept, frozenset(kept & set(shown.run))   # (the hidden runs' curves are kept as data)
     bdf = largest_budget(fdf)
     carried = Carried(out, kept, fresh_methods(fdf, kept))
     # one budget per method: a method whose fresh runs are all at another budget still needs its carried rows
     # there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
     drawn = Carried(out, kept, fresh_methods(bdf, kept))
-    rows = {"raw": (df, None), "variants": (fdf, carried), "budget": (bdf, drawn)}
+    rows = {"raw": (shown, None), "variants": (fdf, carried), "budget": (bdf, drawn)}
     kept_traj = [t for t in sorted(bdf.task.dropna().unique()) if carried.kept_traj(bdf, t)]
     for fig in (f for f in FIGURES if f.rows == "raw"):        # the raw rows' figures first, then per task
-        for task in sorted(df.task.dropna().unique()):
-            written += fig.draw(df, task, stage, None)
+        for task in sorted(shown.task.dropna().unique()):
+            written += fig.draw(shown, task, stage, None)
     for task in sorted(fdf.task.dropna().unique()):
         for fig in (f for f in FIGURES if f.rows != "raw"):
             d, c = rows[fig.rows]
             written += fig.draw(d, task, stage, c)
-    written += training_curves(df, stage) + [p for r in sorted(kept) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
-    written.append(_index(fdf, runs, out, experiment, written, carried_lines(fdf, carried, kept_traj), stage))
+    written += training_curves(shown, stage) + [p for r in sorted(kept_all) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
+    written.append(_index(method_variants(df), runs, out, experiment, written, carried_lines(fdf, carried, kept_traj),
+                          stage, hidden=hidden))
     return written, df
 
 
@@ -211,9 +217,10 @@ def revision_lines(df: pd.DataFrame) -> list[str]:
 
 
 def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, files: list[Path],
-           carried: list[str], stage: Path) -> Path:
+           carried: list[str], stage: Path, hidden: int = 0) -> Path:
     """README.md of the report in ``out``, written into ``stage``; ``df``: its rows with methods named as drawn
-    (:func:`method_variants`); ``files``: the report's, in ``stage`` or kept in ``out``."""
+    (:func:`method_variants`); ``files``: the report's, in ``stage`` or kept in ``out``; ``hidden``: runs not
+    drawn (:func:`newest_version`)."""
     budgets = (df.groupby(["task", "method"]).agg(
         seeds=("train_seed", _ints),
         n_traj=("n_traj", _ints),
@@ -232,6 +239,9 @@ def _index(df: pd.DataFrame, runs: Path, out: Path, experiment: str | None, file
     if spec.is_file():
         saved = out.parent / "estimates" / f"{name}.txt"     # results/estimates/, beside the report
         lines += coverage_lines(df, name, hours=estimated_hours(saved), hours_from=f"../estimates/{saved.name}")
+    if hidden:
+        lines += ["", f"Not drawn: {hidden} run(s) of an older results version than other runs of their task and TO "
+                  "family (all_runs.csv keeps their rows; the figures and the ledger read the newest version only)."]
     lines += list(carried)
     lines += revision_lines(df)
     lines += ["", "## Files", ""]

@@ -88,6 +88,25 @@ def to_family(df: pd.DataFrame) -> pd.Series:
     return df["to"].astype(object).where(df["to"].notna(), "ms").astype(str)
 
 
+def newest_version(df: pd.DataFrame) -> pd.DataFrame:
+    """The rows the figures and the ledger read: where a task under one TO family has rows of several results
+    versions (``results_version``, :mod:`sdp_cli.report.versions`), only its newest version's. A re-run fills a
+    report run by run while the earlier report's rows are kept (``--keep-missing``); between versions a task may
+    have been redefined (UR5(0, 0)'s TO-alone cost is 0.059 at version 1 and 6.28 at version 4), so one curve or
+    interval mixing them would measure nothing. Rows of an unknown version are kept; ``all_runs.csv`` and the
+    coverage table keep every row."""
+    return df[newest_version_mask(df)]
+
+
+def newest_version_mask(df: pd.DataFrame) -> pd.Series:
+    """:func:`newest_version`'s rows as a boolean mask over ``df``."""
+    if df.empty or "results_version" not in df or "task" not in df:
+        return pd.Series(True, index=df.index)
+    v = pd.to_numeric(df["results_version"], errors="coerce")
+    newest = v.groupby([df["task"], to_family(df)]).transform("max")
+    return ~(v < newest)
+
+
 def split_family(method: str) -> tuple[str, str | None]:
     """``(variant without its TO family, family)`` of a drawn variant: ``sdp-to-ddp`` -> ``("sdp", "ddp")``;
     no family suffix: ``(method, None)``."""

@@ -19,7 +19,9 @@ verdicts of :mod:`sdp_cli.report.ledger.verdicts`, the same for every claim:
   judged per family, and a claim that needs it gives both, with one verdict where they agree;
 - every row names the results version (:data:`sdp_cli.RESULTS_VERSION`, :mod:`sdp_cli.report.versions`) of the
   runs it reads, and the header says what changed since the oldest of them (:data:`sdp_cli.RESULTS_HISTORY`):
-  a verdict on runs of an older version is what those runs measured, not what the current code does.
+  a verdict on runs of an older version is what those runs measured, not what the current code does; where a
+  task under one TO family has runs of several versions (a re-run filling in), only the newest are read
+  (:func:`sdp_cli.report.rows.newest_version`).
 
 The diffusion policies' rows are those at the T_a evaluated at every loop iteration (the training
 T_a); "solves" means a success rate of at least 50% over the test instances.
@@ -35,7 +37,7 @@ from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
 from sdp_cli.report.ledger.rules import RULES, Row
 from sdp_cli.report.ledger.verdicts import pct_text
-from sdp_cli.report.rows import TO_FAMILIES, last_iteration, to_family, unfinished
+from sdp_cli.report.rows import TO_FAMILIES, last_iteration, newest_version, to_family, unfinished
 from sdp_cli.report.estimates import read_estimate
 from sdp_cli.report.versions import version_text
 
@@ -47,7 +49,7 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     a rule judges one family at a time; rows without the column are ``ms``."""
     out = {}
     for p in sorted(results.glob("*/all_runs.csv")):
-        df = pd.read_csv(p)
+        df = newest_version(pd.read_csv(p))
         fam = to_family(df)
         for f in sorted(set(fam) - {"ms"}):
             out[f"{p.parent.name}/{f}"] = df[fam == f].reset_index(drop=True)
