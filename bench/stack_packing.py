@@ -7,7 +7,7 @@
 every member's batch to its largest. Rule "across sizes" (the packing until 2026-11-27): a training config's
 runs sorted by dataset size and cut into stacks of ``--stack``, so one stack may hold n_traj 2 and 32. Rule
 "one size" (``pack`` now): one dataset size per stack, split evenly. For each rule and each stack, the seconds
-of one stacked step (``sdp_cli.estimate.stacked_step_seconds``: the trainer's own step on synthetic batches of
+of one stacked step (``sdp_cli.estimate.job_step_seconds``: the trainer's own step on synthetic batches of
 the task's shapes, padded to the stack's largest batch; ``step_seconds`` for a stack of one) times the steps of
 its longest member; the sums per (task, method) and their ratio are printed. Every distinct (R, B) is measured
 once, so both rules' sums come from the same measurements.
@@ -37,7 +37,7 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(1)
 
-    from sdp_cli.estimate import stacked_step_seconds, step_seconds, training_stages
+    from sdp_cli.estimate import job_step_seconds, training_stages
     from sdp_cli.experiment import load_experiment
     from sdp_cli.pipeline import loop_configs
     from sdp_cli.runner import pack
@@ -53,13 +53,7 @@ def main() -> None:
     cache: dict = {}
 
     def seconds(job: list[str]) -> float:
-        s0 = st[job[0]]
-        key = (s0.task, s0.method, s0.T_h, s0.action, len(job), max(st[n].B for n in job))
-        if key not in cache:
-            R, B = key[4], key[5]
-            cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", a.max_s) if R == 1 else
-                          stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", a.max_s))
-        return cache[key] * max(st[n].steps for n in job)
+        return job_step_seconds([st[n] for n in job], cache, a.max_s) * max(st[n].steps for n in job)
 
     groups: dict = {}
     for n, c in runs.items():

@@ -190,6 +190,21 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
     return _median_seconds(step, max_s)
 
 
+def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
+    """Measured seconds of one training step of a job of the runs ``sts`` (one :class:`TrainStage` each): a
+    stack's (:func:`stacked_step_seconds`, batches padded to the largest), or one run's (:func:`step_seconds`);
+    measured once per (task, method, T_h, action, R, B) in ``cache``."""
+    s0 = sts[0]
+    key = (s0.task, s0.method, s0.T_h, s0.action, len(sts), max(s.B for s in sts))
+    if key not in cache:
+        R, B = key[4], key[5]
+        cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s) if R == 1 else
+                      stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s))
+        log(f"calibrated a stack of {R} {s0.method} runs on {s0.task} (T_h {s0.T_h}, B={B}): "
+            f"{cache[key] * 1e3:.1f} ms a step")
+    return cache[key]
+
+
 def _interp(cal: tuple, B: int) -> float:
     lo, t_lo, hi, t_hi = cal
     return t_lo if hi == lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
@@ -239,15 +254,11 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
     stacked: dict = {}
     for job in (j for j in pack(runs, DEFAULT_STACK if stack is None else stack) if len(j) > 1):
         sts = [next(s for s in train if s.run == run) for run in job]
-        key = (sts[0].task, sts[0].method, sts[0].T_h, sts[0].action, len(job), max(s.B for s in sts))
-        if key not in stacked:
-            stacked[key] = stacked_step_seconds(*key[:3], key[5], key[4], key[3], "cpu", 3.0)
-            log(f"calibrated a stack of {key[4]} {key[1]} runs on {key[0]} (T_h {key[2]}, B={key[5]}): "
-                f"{stacked[key] * 1e3:.1f} ms a step")
+        seconds = job_step_seconds(sts, stacked, log=log)
         longest = max(s.steps for s in sts)
         for run in job:   # the stack runs as long as its longest member; each member bears an equal share
             rows[run]["stack"] = len(job)
-            rows[run]["train_cpu_s"] = longest * stacked[key] / len(job)   # (GPU columns: solo steps, not stacked)
+            rows[run]["train_cpu_s"] = longest * seconds / len(job)   # (GPU columns: solo steps, not stacked)
     for run, cfg in runs.items():
         r, task = rows[run], get_task(cfg.task)
         ms, ss = to_reference(cfg.task, cfg.to)
