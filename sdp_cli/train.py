@@ -255,11 +255,13 @@ class Run:
         if with_state:
             payload["train_state"] = {"optimizer": self.opt.state_dict(), "lr_scheduler": self.sched.state_dict(),
                                       "ema": ema.state_dict(), "generator": self.gen.get_state()}
+        # the metrics first: a kill between the two writes leaves metrics.csv ahead of the checkpoint (--resume
+        # drops the rows past its step), never behind it (rows lost for good)
+        self.metrics.rewrite()
         save_checkpoint(path or self.ck_path, payload)
         if with_state:
             save_timing(self.out, {"wall_time": self.wall0 + (time.perf_counter() - self.t0), "step": self.step,
                                    "device": str(self.device)})
-        self.metrics.rewrite()
 
     def describe(self) -> str:
         cfg, B = self.cfg, self.cfg.data.batch_size
