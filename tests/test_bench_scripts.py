@@ -68,3 +68,26 @@ def test_packing_bench_keeps_the_rule_it_compares_with():
     jobs = _bench("stack_packing").across_sizes(list(runs), runs, 8)
     assert jobs == [["n2-s0", "n2-s1", "n2-s2", "n4-s0", "n4-s1", "n4-s2", "n8-s0", "n8-s1"],
                     ["n8-s2", "n16-s0", "n16-s1", "n16-s2", "n32-s0", "n32-s1", "n32-s2"]]
+
+
+def test_action_noise_bench_perturbs_only_the_played_rows_in_the_networks_units():
+    """bench/action_noise.py: the inpainted history rows stay exact, noise is sigma x the coordinate's half-range,
+    an offset is one draw held over a chunk, and the blocks of a state action partition it."""
+    mod = _bench("action_noise")
+
+    class Base:
+        task, T_h, T_o = None, 6, 1
+
+        def predict_chunk(self, xis, x, u_prev, generator=None, k_rollout=None):
+            return np.ones((len(xis), 6, 3))
+
+    scale = np.array([1.0, 10.0, 0.0])
+    xis = np.zeros((4000, 1))
+    white = mod.NoisyMemorizer(Base(), scale, 0.01, "white", seed=0).predict_chunk(xis, None, None)
+    assert np.all(white[:, 0] == 1.0) and np.all(white[:, :, 2] == 1.0)
+    assert np.allclose((white[:, 1:, :2] - 1).std(axis=(0, 1)), [0.01, 0.1], rtol=0.05)
+    offset = mod.NoisyMemorizer(Base(), scale, 0.01, "offset", seed=0).predict_chunk(xis, None, None)
+    assert np.all(offset[:, 0] == 1.0) and np.allclose(offset[:, 1:], offset[:, 1:2])
+    assert np.all(mod.NoisyMemorizer(Base(), scale, 0.0, "white", seed=0).predict_chunk(xis, None, None) == 1.0)
+    b = mod.blocks(12, 6)
+    assert [np.arange(12)[s].tolist() for s in b.values()] == [list(range(6)), [6, 7, 8], [9, 10, 11]]
