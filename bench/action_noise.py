@@ -63,8 +63,13 @@ class NoisyMemorizer:
         return tau + self.sigma * noise * self.scale
 
 
-def replay(policy, arrays: dict) -> dict:
-    """Roll ``policy`` out on the dataset's own instances; success, cost / TO, final distance."""
+def to_costs(task, arrays: dict) -> np.ndarray:
+    """TO's cost of each of the dataset's own trajectories, ``(N,)``."""
+    return np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
+
+
+def replay(policy, arrays: dict, to: np.ndarray) -> dict:
+    """Roll ``policy`` out on the dataset's own instances; success, cost / ``to`` (TO's, ``(N,)``), final distance."""
     import torch
 
     from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
@@ -74,7 +79,6 @@ def replay(policy, arrays: dict) -> dict:
     with torch.no_grad():
         ro = rollout_policy(policy, xis, cfg, generators=instance_generators(0, range(len(xis))))
     ev = evaluate_rollouts(policy.task, ro["X"], ro["U"], xis)
-    to = np.array([policy.task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], xis)])
     return {"reached": ev["reached"], "ratio": ev["cost"] / to, "dist": ev["goal_distance"], "t_a": cfg.t_a}
 
 
@@ -136,24 +140,25 @@ def main() -> None:
             mem_x = copy.copy(mem)                                 # keyed on (x_t, xi) only
             mem_x.scale = mem.scale.copy()
             mem_x.scale[task.nx:task.nx + task.nu] = np.inf
+            to = to_costs(task, arrays)
             scale = fit_normalizer(task, arrays, mem.task.action).action_scale.double().numpy()
             for j, sigma in enumerate(SIGMAS):
                 for kind in ("white", "offset"):
                     for key, m in (("(x, u_prev, xi)", mem), ("(x, xi)", mem_x)):
-                        r = replay(NoisyMemorizer(m, scale, sigma, kind, seed=s * 100 + j), arrays)
+                        r = replay(NoisyMemorizer(m, scale, sigma, kind, seed=s * 100 + j), arrays, to)
                         per.setdefault((kind, key, sigma), []).append(r)
             if mem.task.action == "x":
                 for name, sl in blocks(scale.size, task.nv).items():
                     for sigma in BLOCK_SIGMAS:
                         only = np.zeros_like(scale)
                         only[sl] = scale[sl]
-                        r = replay(NoisyMemorizer(mem, only, sigma, "white", seed=s * 100 + 50), arrays)
+                        r = replay(NoisyMemorizer(mem, only, sigma, "white", seed=s * 100 + 50), arrays, to)
                         per.setdefault(("block", name, sigma), []).append(r)
             for m, pol in policies.items():
                 data, _, _ = load_dataset(runs[m] / "it0" / "data.npz", require_gains=False)
                 rms, first = fit_error(pol, data, MemorizerPolicy(task, data, T_h).chunks, scale, a.stride)
                 fits.append({"task": task_name, "method": m, "seed": s, "chunk error RMS": rms,
-                             "first row RMS": first, **summary([replay(pol, data)])})
+                             "first row RMS": first, **summary([replay(pol, data, to_costs(task, data))])})
         for (kind, key, sigma), r in sorted(per.items(), key=lambda kv: (kv[0][0], kv[0][1] != "(x, u_prev, xi)", kv[0][2])):
             if kind == "block":
                 by_block.append({"task": task_name, "noisy block": key, "sigma": sigma, **summary(r)})
