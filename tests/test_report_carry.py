@@ -117,6 +117,27 @@ def test_trajectory_figure_is_kept_when_a_method_is_fresh_only_at_a_smaller_budg
     assert not c.keeps_traj(drawn[drawn.method == "pddp"])
 
 
+def test_trajectory_figures_are_one_per_to_family_each_kept_on_its_own(tmp_path):
+    """A task under fatrop and box-FDDP: one figure per family (one figure of both drew the first method's family's
+    TO alone for every method, 16 series a panel), the main family's under the old name; a family whose runs are
+    all carried keeps its earlier file while the other is redrawn; a task of one family keeps one plain figure."""
+    from sdp_cli.report.figures.traj import traj, traj_parts, trajectories
+
+    d = pd.DataFrame({"task": "p", "method": ["sdp-to-ddp", "dp-to-ms", "sdp-to-ms", "dp-to-ddp"],
+                      "run": ["s-ddp", "d", "s", "d-ddp"]})
+    parts = traj_parts(d, "p")
+    assert [(name, sorted(rows.method)) for name, rows in parts] == [
+        ("traj_p.png", ["dp-to-ms", "sdp-to-ms"]), ("traj_p-to-ddp.png", ["dp-to-ddp", "sdp-to-ddp"])]
+    assert [(n, len(r)) for n, r in traj_parts(d.assign(method=["sdp", "dp"] * 2), "p")] == [("traj_p.png", 4)]
+    (tmp_path / "traj_p-to-ddp.png").write_bytes(b"earlier")
+    c = Carried(tmp_path, frozenset({"s-ddp", "d-ddp"}))
+    assert [c.kept_traj(rows, name) for name, rows in parts] == [False, True]
+    rows = d.assign(rollouts=None, refined=None, iteration=0, t_a=4, success_rate=1.0, policy_cost_median=1.0)
+    assert traj(rows, "p", tmp_path, c) == [tmp_path / "traj_p-to-ddp.png"]   # ms redrawn (no rollouts: none), ddp kept
+    with pytest.raises(ValueError, match="several TO families"):
+        trajectories(rows, "p", tmp_path)
+
+
 def test_keep_missing_without_an_earlier_report_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "runs").mkdir()

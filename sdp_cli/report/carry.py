@@ -12,7 +12,7 @@ drop every other run. With ``--keep-missing`` the report extends the one already
   or, in tables written before they had one, the rows of a method none of whose runs is under ``--runs``
   (exactly the earlier report's rows of that method, since the earlier report had no other runs of it),
   which are then given their run where the method has one carried run in the table;
-- ``traj_<task>.png`` needs the rollouts themselves: it is redrawn only when every method it draws has
+- ``traj_<task>*.png`` needs the rollouts themselves: it is redrawn only when every method it draws has
   its files here, and otherwise kept from the earlier report (the README says which).
 
 Figures, the ledger and the metrics use the carried rows like any other.
@@ -78,9 +78,10 @@ class Carried:
         method with fresh runs at another budget only is not drawn either)."""
         return bool(self.runs) and any(set(g.run) <= self.runs for _, g in rows.groupby("method"))
 
-    def kept_traj(self, rows: pd.DataFrame, task: str) -> bool:
-        """``traj_<task>.png`` stays the earlier report's: :meth:`keeps_traj` of the task's rows, and it exists."""
-        return self.keeps_traj(rows[rows.task == task]) and (self.out / f"traj_{task}.png").is_file()
+    def kept_traj(self, rows: pd.DataFrame, name: str) -> bool:
+        """The trajectory figure ``name`` (of ``rows``: one task, one TO family; :func:`~sdp_cli.report.figures.
+        traj.traj_parts`) stays the earlier report's: :meth:`keeps_traj` of ``rows``, and the file exists."""
+        return self.keeps_traj(rows) and (self.out / name).is_file()
 
 
 def carry_over(df: pd.DataFrame | None, out: Path, log=lambda s: None) -> tuple[pd.DataFrame, frozenset[str]]:
@@ -120,7 +121,8 @@ def fresh_methods(fdf: pd.DataFrame, carried: frozenset[str]) -> frozenset[tuple
 
 
 def carried_lines(df: pd.DataFrame, carried: Carried, kept_traj: list[str]) -> list[str]:
-    """README lines: which runs came from the earlier report, which figures were kept from it."""
+    """README lines: which runs came from the earlier report, which figures were kept from it (``kept_traj``: the
+    trajectory figures' file names)."""
     if not carried.runs:
         return []
     d = df[df.run.isin(carried.runs)]
@@ -131,5 +133,5 @@ def carried_lines(df: pd.DataFrame, carried: Carried, kept_traj: list[str]) -> l
         lines.append(f"| {task} | {method} | {g.run.nunique()} |")
     if kept_traj:
         lines += ["", "Kept as drawn by the earlier report (some method they draw has no rollouts here): "
-                  + ", ".join(f"`traj_{t}.png`" for t in kept_traj) + "."]
+                  + ", ".join(f"`{name}`" for name in kept_traj) + "."]
     return lines

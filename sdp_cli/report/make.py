@@ -129,6 +129,7 @@ def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
     written = [save_csv(df.drop(columns=[c for c in PATH_COLUMNS if c in df]), stage / "all_runs.csv")]
     from sdp_cli.report.figures import FIGURES
     from sdp_cli.report.figures.curves import training_curves
+    from sdp_cli.report.figures.traj import traj_parts
 
     newest = newest_version_mask(df)   # a task's rows of an older results version beside a newer one's: not drawn
     shown, hidden = df[newest], df.run[~newest].nunique()
@@ -142,7 +143,8 @@ def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
     # there (UR5 DP: fresh at n_traj 2-8, drawn at 32 from the earlier report)
     drawn = Carried(out, kept, fresh_methods(bdf, kept))
     rows = {"raw": (shown, None), "variants": (fdf, carried), "budget": (bdf, drawn)}
-    kept_traj = [t for t in sorted(bdf.task.dropna().unique()) if carried.kept_traj(bdf, t)]
+    kept_traj = [name for t in sorted(bdf.task.dropna().unique()) for name, part in traj_parts(bdf, t)
+                 if drawn.kept_traj(part, name)]
     for fig in (f for f in FIGURES if f.rows == "raw"):        # the raw rows' figures first, then per task
         for task in sorted(shown.task.dropna().unique()):
             written += fig.draw(shown, task, stage, None)

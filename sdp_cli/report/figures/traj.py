@@ -1,6 +1,10 @@
 """The report's trajectory figure, ``traj_<task>``: TO alone vs each method's policy and refined solution
 on the first few test instances, each panel titled with every rollout's outcome (goal or miss, the
-constraint groups it breaks) and the figure with the shares over all test instances."""
+constraint groups it breaks) and the figure with the shares over all test instances.
+
+A task evaluated under two TO families (``sdp loop --to ddp`` beside the main one) gets one figure per family
+(:func:`traj_parts`): each family's TO alone is its own solver's, and one figure of both drew the first
+method's family's TO alone for all (and 16 series in a panel)."""
 
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.figures.paper import _named
-from sdp_cli.report.rows import loop_t_a
+from sdp_cli.report.rows import TO_FAMILIES, loop_t_a, split_family
 from sdp_cli.report.figures.style import COLORS, method_label, method_order, pyplot, save_fig
 
 
@@ -56,17 +60,35 @@ def _refine_note(f: dict, j: int) -> str:
     return ", refine not converged" if ok is not None and not bool(ok[j]) else ""
 
 
+def traj_parts(df: pd.DataFrame, task: str) -> list[tuple[str, pd.DataFrame]]:
+    """``(file name, rows)`` of each trajectory figure of ``task``: one ``traj_<task>.png`` of all its rows,
+    or, where its methods are drawn per TO family (``sdp-to-ddp``, :func:`~sdp_cli.report.rows.method_variants`),
+    one per family: the main one's (``ms``) ``traj_<task>.png``, another's ``traj_<task>-to-<family>.png``."""
+    d = df[df.task == task]
+    fam = d.method.map(lambda m: split_family(m)[1])
+    if fam.isna().all():
+        return [(f"traj_{task}.png", d)]
+    return [(f"traj_{task}.png" if f == "ms" else f"traj_{task}-to-{f}.png", d[fam == f])
+            for f in sorted(fam.dropna().unique(), key=lambda f: (f != "ms", f))]
+
+
 def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
-    """``traj_<task>.png`` (:func:`trajectories`), or the earlier report's where some method it draws has only
-    carried runs, whose rollouts are gone (``carried``: :class:`~sdp_cli.report.carry.Carried`)."""
-    if carried is not None and carried.kept_traj(df, task):
-        return [carried.out / f"traj_{task}.png"]     # the earlier report's file, kept where it is
-    return trajectories(df, task, out)
+    """Each of :func:`traj_parts` drawn by :func:`trajectories`, or the earlier report's where some method it
+    draws has only carried runs, whose rollouts are gone (``carried``: :class:`~sdp_cli.report.carry.Carried`)."""
+    written = []
+    for name, rows in traj_parts(df, task):
+        if carried is not None and carried.kept_traj(rows, name):
+            written.append(carried.out / name)      # the earlier report's file, kept where it is
+        else:
+            written += trajectories(rows, task, out, name=name)
+    return written
 
 
-def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -> list[Path]:
+def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4, name: str | None = None) -> list[Path]:
     """TO alone vs each method's policy and refined solution on a few test instances (the best
-    run of each method at the last iteration it reached; the test instances are the same for all).
+    run of each method at the last iteration it reached; the test instances are the same for all), written to
+    ``out / name`` (default ``traj_<task>.png``). ``df``'s rows are of one TO family, whose TO alone is drawn
+    (:func:`traj_parts`); a family suffix of their methods is named once, in the title.
 
     Pendulums: the tip's distance to the goal over time, with the goal tolerance (their tip paths all lie
     on the same circle, which showed nothing); UR5 and quadrotor seen from above (x-y) with the columns,
@@ -76,17 +98,22 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     from sdp_cli.report.figures.plot_dataset import _draw_columns_top, goal_point, trajectory_points
     from sdp_cli.tasks import get_task
 
-    d = loop_t_a(df[df.task == task_name])
-    d = _last_iterations(d)
+    d = df[df.task == task_name]
+    families = {split_family(m)[1] for m in d.method}
+    if len(families) > 1:
+        raise ValueError(f"trajectories of {task_name}: rows of several TO families {sorted(map(str, families))}; "
+                         "draw each of traj_parts")
+    family = families.pop() if families else None
+    d = _last_iterations(loop_t_a(d))
     found = {m: _best_rollout(g) for m, g in d.groupby("method")}
     found = {m: v for m, v in found.items() if v is not None and "inst_pol_X" in load_npz(v[1], kind="dataset")[0]}
     if not found:
         return []
     runs = {}
-    for m, (ro, rf, name) in sorted(found.items(), key=lambda x: method_order(x[0])):
+    for m, (ro, rf, run) in sorted(found.items(), key=lambda x: method_order(x[0])):
         r, rmeta = load_npz(ro, kind="rollout")
         f, _ = load_npz(rf, kind="dataset")
-        runs[m] = (r, f, rmeta, name)
+        runs[split_family(m)[0]] = (r, f, rmeta, run)
     r0, f0, meta0, _ = next(iter(runs.values()))
     task = get_task(task_name, **(meta0.get("task_options") or {}))
     top = task.report_view == "top"
@@ -140,8 +167,9 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4) -
     n = len(r0["X"])
     drawn = "instance 0" if n_show == 1 else f"instances 0-{n_show - 1}"
     conv = "" if base_ok is None else f"; TO alone converged on {int(base_ok.sum())} of {n}"
-    fig.suptitle("\n".join([f"{task_name}: TO alone vs policy vs refined ({what}); {drawn} of {n} drawn (the first, "
-                            f"not chosen){conv}"] + [f"{method_label(m)} (its best run by success, {name}): over all {n}, {_shares(r, rmeta)}"
-                                               for m, (r, _, rmeta, name) in runs.items()]), fontsize=9)
+    by = "" if family is None else f" (TO {TO_FAMILIES.get(family, family)})"
+    fig.suptitle("\n".join([f"{task_name}{by}: TO alone vs policy vs refined ({what}); {drawn} of {n} drawn (the first, "
+                            f"not chosen){conv}"] + [f"{method_label(m)} (its best run by success, {run}): over all {n}, {_shares(r, rmeta)}"
+                                               for m, (r, _, rmeta, run) in runs.items()]), fontsize=9)
     fig.tight_layout(rect=(0, (0.22 * n_leg + 0.1) / height, 1, 1))
-    return [save_fig(fig, out / f"traj_{task_name}.png")]
+    return [save_fig(fig, out / (name or f"traj_{task_name}.png"))]
