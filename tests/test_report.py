@@ -392,7 +392,8 @@ def test_fig2b_counts_the_to_alone_solves_once_however_many_runs_repeat_them():
 def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path, monkeypatch):
     """A diverged mean is drawn as ∞ at the top of fig1's cost axis, two rows of them; on a log axis a
     band 30% above the highest mean is a tenth of a decade, so the rows covered the highest curve (UR5).
-    An interval reaching below zero runs off a log axis' bottom: "≤0" says so there."""
+    An interval reaching below zero runs off a log axis' bottom: "≤0" says so there. A spread of 30x or more is
+    drawn on a log axis (UR5: an n_traj 2 mean of 540 flattened 6.4-16, where claim 1 is read, on a linear one)."""
     import pandas as pd
 
     from sdp_cli.report.figures import paper as figures
@@ -401,14 +402,18 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
         rows = []
         for seed in range(2):
             dp_n4 = 60.0 + 900 * seed if spread > 1e3 else 60.0     # two far-apart seeds: mean 510 ± 5700
-            for n, (sdp, dp) in {2: (spread, 50.0), 4: (20.0 + seed, dp_n4), 8: (1.0 + seed, 1e9)}.items():
+            low = 1.0 if spread > 1e3 else 10.0          # linear: 60 over 10 (log from 30x)
+            for n, (sdp, dp) in {2: (spread, 50.0), 4: (20.0 + seed, dp_n4), 8: (low + seed, 1e9)}.items():
                 rows += [{"task": "t", "iteration": 0, "method": m, "epochs": 100, "n_traj": n, "success_rate": 0.5,
-                          "policy_cost_mean": c, "to_alone_cost_mean": 0.5} for m, c in (("sdp", sdp), ("dp", dp))]
+                          "policy_cost_mean": c, "to_alone_cost_mean": low / 2} for m, c in (("sdp", sdp), ("dp", dp))]
         figs = []
         monkeypatch.setattr(figures, "save_fig", lambda fig, path: figs.append(fig) or path)
         figures.fig1(pd.DataFrame(rows), "t", tmp_path)
         ax = figs[0].axes[0]
         assert ax.get_yscale() == ("log" if spread > 1e3 else "linear")
+        if spread < 1e3:    # 540 beside 6.4 (UR5's n_traj 2 and TO alone) goes on a log axis
+            figures.fig1(pd.DataFrame(rows).replace({10.0: 6.4, 50.0: 540.0}), "t", tmp_path)
+            assert figs[-1].axes[0].get_yscale() == "log"
         figs[0].canvas.draw()
         renderer = figs[0].canvas.get_renderer()
         marks = [t for t in ax.texts if t.get_text() == "∞"]
