@@ -15,7 +15,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.figures.paper import _named
-from sdp_cli.report.rows import TO_FAMILIES, loop_t_a, split_family
+from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, split_family
 from sdp_cli.report.figures.style import COLORS, method_label, method_order, pyplot, save_fig
 
 
@@ -65,11 +65,9 @@ def traj_parts(df: pd.DataFrame, task: str) -> list[tuple[str, pd.DataFrame]]:
     or, where its methods are drawn per TO family (``sdp-to-ddp``, :func:`~sdp_cli.report.rows.method_variants`),
     one per family: the main one's (``ms``) ``traj_<task>.png``, another's ``traj_<task>-to-<family>.png``."""
     d = df[df.task == task]
-    fam = d.method.map(lambda m: split_family(m)[1])
-    if fam.isna().all():
-        return [(f"traj_{task}.png", d)]
+    fam = d.method.map(family_of)
     return [(f"traj_{task}.png" if f == "ms" else f"traj_{task}-to-{f}.png", d[fam == f])
-            for f in sorted(fam.dropna().unique(), key=lambda f: (f != "ms", f))]
+            for f in sorted(fam.unique(), key=lambda f: (f != "ms", f))]
 
 
 def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
