@@ -423,6 +423,17 @@ def test_fig1_infinity_rows_sit_above_every_mean_on_log_and_linear_axes(tmp_path
         assert marks[0].xy[1] < ax.get_ylim()[1]
         zeros = [t.xy[0] for t in ax.texts if t.get_text() == "≤0"]
         assert zeros == ([pytest.approx(4, rel=0.1)] if spread > 1e3 else [])     # DP's n_traj 4
+    # two neighbouring curves (SDP at 1e4 and 2e4 epochs on UR5) reaching below zero at one n_traj: their "≤0"
+    # sat side by side 1.07x apart on the n_traj axis and ran into one another ("≤00")
+    costs = {2: (1e4, 1e4), 4: (60.0, 960.0), 8: (1.0, 2.0)}      # n_traj 4: mean 510 ± 5700
+    both = pd.DataFrame([{"task": "t", "iteration": 0, "method": "sdp", "epochs": ep, "n_traj": n, "success_rate": 0.5,
+                          "policy_cost_mean": c[seed], "to_alone_cost_mean": 0.5}
+                         for ep in (100, 200) for n, c in costs.items() for seed in range(2)])
+    figures.fig1(both, "t", tmp_path)
+    figs[-1].canvas.draw()
+    ax = figs[-1].axes[0]
+    boxes = [t.get_window_extent(figs[-1].canvas.get_renderer()) for t in ax.texts if t.get_text() == "≤0"]
+    assert len(boxes) == 2 and not boxes[0].overlaps(boxes[1])
 
 
 def test_timing_table_counts_single_shooting_and_the_measured_wall(tmp_path):

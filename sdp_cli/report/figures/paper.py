@@ -32,12 +32,13 @@ def _bottom_room(tab: pd.DataFrame) -> float:
     return 6.0 if (tab["mean"][ok] - tab["ci95"][ok].astype(float) <= 0).any() else 1.5
 
 
-def _mark_reaching_zero(ax, x, mean, ci, color) -> None:
-    """On a log axis an interval whose lower end is <= 0 runs off the bottom: write "≤0" there, at ``x``."""
+def _mark_reaching_zero(ax, x, mean, ci, color, row: int = 0) -> None:
+    """On a log axis an interval whose lower end is <= 0 runs off the bottom: write "≤0" there, at ``x``, in
+    text row ``row`` (0 or 1) from the bottom; neighbouring curves alternate rows, so that none covers another."""
     for xi, m, h in zip(x, mean, ci):
         if ax.get_yscale() == "log" and np.isfinite(h) and m - h <= 0:
-            ax.annotate("≤0", (xi, 0), xycoords=("data", "axes fraction"), xytext=(0, 2), textcoords="offset points",
-                        ha="center", va="bottom", fontsize=7, color=color)
+            ax.annotate("≤0", (xi, 0), xycoords=("data", "axes fraction"), xytext=(0, 2 + 9 * row),
+                        textcoords="offset points", ha="center", va="bottom", fontsize=7, color=color)
 
 
 def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
@@ -94,7 +95,7 @@ def _fig1_row(ax, ax2, tab: pd.DataFrame, log_y: bool, top: float) -> None:
                   label=f"{method_label(method)} ({epochs} ep.)")
         ok = np.isfinite(g["mean"]) & (g["mean"] < DIVERGED)
         ax.errorbar(g["n_traj"][ok] * shift, g["mean"][ok], yerr=g["ci95"][ok].fillna(0), **kw)
-        _mark_reaching_zero(ax, g["n_traj"][ok] * shift, g["mean"][ok], g["ci95"][ok], kw["color"])
+        _mark_reaching_zero(ax, g["n_traj"][ok] * shift, g["mean"][ok], g["ci95"][ok], kw["color"], row=i % 2)
         for n in g["n_traj"][~ok]:   # neighbouring curves' ∞ in alternate rows, so that none covers another
             ax.annotate("∞", (n * shift, top), xytext=(0, -9 * (i % 2)), textcoords="offset points",
                         ha="center", va="top", fontsize=11, color=kw["color"])
