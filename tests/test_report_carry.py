@@ -97,7 +97,9 @@ def test_earlier_tables_give_the_rows_of_kept_runs(tmp_path):
     assert list(rows.iterations) == [1, 2] and list(rows.run) == ["dp-n32", "dp-n32"]    # given their run
     pd.DataFrame({"method": ["dp", "sdp", "sdp", "dp"], "run": ["dp-n32", "sdp-n8", "sdp-n32", None],
                   "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "new.csv", index=False)
-    assert list(c.rows("new.csv", "ur5", drawn[drawn.method == "dp"]).iterations) == [1, 2, 4]
+    # sdp-n8 is carried but not drawn (another budget: fig2b's SDP at n_traj 16 stayed beside 32, "300 guesses")
+    assert list(c.rows("new.csv", "ur5", drawn[drawn.method == "dp"]).iterations) == [1, 4]
+    assert list(c.rows("new.csv", "ur5", drawn).iterations) == [1, 2, 4]
     # two carried runs of a method: which run a run-less row was is unknown, so it stays without one
     two = Carried(tmp_path, frozenset({"dp-n32-s0", "dp-n32-s1"}))
     rows = two.rows("old.csv", "ur5", pd.DataFrame({"method": "dp", "run": ["dp-n32-s0", "dp-n32-s1"]}))

@@ -40,9 +40,9 @@ class Carried:
     fresh: frozenset[tuple[str, str]] = field(default_factory=frozenset)
 
     def rows(self, name: str, task: str, drawn: pd.DataFrame) -> pd.DataFrame:
-        """The earlier report's ``name`` (a CSV in ``out``) rows that belong to carried runs of ``task``:
-        by ``run``, and rows with no run (tables written before they had the column) of the methods of the
-        carried runs among ``drawn`` (the rows the table draws: ``method``, ``run``) that have no fresh run.
+        """The earlier report's ``name`` (a CSV in ``out``) rows that belong to carried runs of ``task`` among
+        ``drawn`` (the rows the table draws: ``method``, ``run``): by ``run``, and rows with no run (tables
+        written before they had the column) of the methods of those carried runs that have no fresh run.
         Such rows are given their run where one carried run of their method is drawn, so that they stay the
         run's rows once the method has fresh runs too (a second seed at the same budget)."""
         path = self.out / name
@@ -61,7 +61,9 @@ class Carried:
         for m in sorted(stale):
             variants.setdefault(plain_method(m), []).append(m)
         alias = {p: ms[0] for p, ms in variants.items() if len(ms) == 1 and (task, p) not in self.fresh}
-        rows = old[old.run.isin(self.runs) | (old.run.isna() & old.method.isin(stale | set(alias)))].copy()
+        # only the carried runs the table draws now: a run of another budget (fig2b's SDP at n_traj 16 once
+        # 32 ran) is not the table's any more
+        rows = old[old.run.isin(set(drawn.run)) | (old.run.isna() & old.method.isin(stale | set(alias)))].copy()
         rows["method"] = rows.method.replace(alias)
         runs = drawn.groupby("method").run
         only = runs.first()[runs.nunique() == 1]
