@@ -243,3 +243,32 @@ def test_run_less_rows_of_a_table_with_runs_stay_without_one_when_their_method_h
     c = Carried(tmp_path, frozenset({"dp-x-s0", "dp-x-s1"}))
     rows = c.rows("t.csv", "q", pd.DataFrame({"method": "dp", "run": ["dp-x-s0", "dp-x-s1"]}))
     assert list(rows.iterations) == [1, 2, 3] and list(rows.run[:1]) == ["dp-x-s0"] and rows.run[1:].isna().all()
+
+
+def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
+    """The MLPs act one step at a time (T_a 1) and the diffusion policies T_a 31: the title said "T_a = 1,31"
+    without whose is which. Each legend entry names its method's T_a; one T_a for all stays in the title."""
+    from sdp_cli.report.figures import paper
+
+    drawn = []
+    monkeypatch.setattr(paper, "save_fig", lambda fig, path: drawn.append(fig) or path)
+    rows = [{"task": "quadrotor-0", "method": m, "t_a": t_a, "iteration": 0, "run": f"{m}-s0", "refined": None}
+            for m, t_a in (("sdp", 31), ("pddp", 1))]
+    pd.DataFrame({"solver": "multiple shooting", "method": ["sdp", "sdp", "pddp", "sdp"],
+                  "guess": ["policy", "policy", "policy", "naive"], "iterations": [19, 21, 40, 15],
+                  "run": ["sdp-s0", "sdp-s0", "pddp-s0", "sdp-s0"]}).to_csv(tmp_path / "fig2b_quadrotor-0.csv", index=False)
+    carried = Carried(tmp_path, frozenset({"sdp-s0", "pddp-s0"}))
+
+    def texts():
+        fig = drawn.pop()
+        labels = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+        return fig._suptitle.get_text(), labels
+
+    paper.fig2b(pd.DataFrame(rows), "quadrotor-0", tmp_path, carried)
+    title, labels = texts()
+    assert "T_a =" not in title
+    assert any("SDP (T_a 31, 2 guesses)" in s for s in labels), labels
+    assert any("(T_a 1, 1 guesses)" in s for s in labels), labels
+    paper.fig2b(pd.DataFrame(rows[:1]), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))
+    title, labels = texts()
+    assert "T_a = 31" in title and not any("T_a 31" in s for s in labels), (title, labels)

@@ -257,6 +257,12 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         return []
     last = loop_t_a(d)
     last = last[last.iteration == last.iteration.max()]
+    t_a = {m: ",".join(str(int(v)) for v in sorted(g.dropna().unique())) for m, g in last.groupby("method").t_a}
+
+    def ta_of(method: str) -> str:
+        """``"T_a 31, "`` where the methods' T_a differ (the MLPs act one step at a time), else ``""``."""
+        return f"T_a {t_a[method]}, " if t_a.get(method) and len(set(t_a.values())) > 1 else ""
+
     rows = []
     for r in last.itertuples():
         f = _named(r.refined)
@@ -298,7 +304,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
             ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,
                     color=COLORS.get(method, among=pol.method),
-                    label=f"warm-started by {method_label(method)} ({len(g)} guesses), mean {g.iterations.mean():.0f}")
+                    label=f"warm-started by {method_label(method)} ({ta_of(method)}{len(g)} guesses), "
+                          f"mean {g.iterations.mean():.0f}")
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
         log_ticks(ax.xaxis, lo_x, hi_x)
@@ -306,7 +313,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         ax.set_ylabel("share of solves")
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
     t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
-    fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}, T_a = {t_as}"
+    one_t_a = f", T_a = {t_as}" if t_as and "," not in t_as else ""      # several: each legend entry names its own
+    fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}{one_t_a}"
                  f"{budget_title(d)})", fontsize=10)
     return [save_csv(tab, out / f"fig2b_{task}.csv"), save_fig(fig, out / f"fig2b_{task}.png")]
 
