@@ -262,7 +262,9 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     def texts():
         fig = drawn.pop()
         labels = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
-        return fig._suptitle.get_text(), labels
+        title = fig.get_suptitle()
+        paper.pyplot().close(fig)
+        return title, labels
 
     paper.fig2b(pd.DataFrame(rows), "quadrotor-0", tmp_path, carried)
     title, labels = texts()
