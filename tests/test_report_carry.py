@@ -274,3 +274,8 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     paper.fig2b(pd.DataFrame(rows[:1]), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))
     title, labels = texts()
     assert "T_a = 31" in title and not any("T_a 31" in s for s in labels), (title, labels)
+    # one method drawn at two T_a (e.g. a sweep's rows): the legend names both, the title none
+    two = [dict(rows[0]), dict(rows[0], t_a=15, run="sdp-s1")]
+    paper.fig2b(pd.DataFrame(two), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))
+    title, labels = texts()
+    assert "T_a =" not in title and any("T_a 15,31" in s for s in labels), (title, labels)

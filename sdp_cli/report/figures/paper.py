@@ -258,10 +258,11 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     last = loop_t_a(d)
     last = last[last.iteration == last.iteration.max()]
     t_a = {m: ",".join(str(int(v)) for v in sorted(g.dropna().unique())) for m, g in last.groupby("method").t_a}
+    several = last.t_a.dropna().nunique() > 1     # the MLPs act one step at a time, the diffusion policies T_a
 
     def ta_of(method: str) -> str:
-        """``"T_a 31, "`` where the methods' T_a differ (the MLPs act one step at a time), else ``""``."""
-        return f"T_a {t_a[method]}, " if t_a.get(method) and len(set(t_a.values())) > 1 else ""
+        """``"T_a 31, "`` where the drawn rows hold several T_a, else ``""`` (the title names the one)."""
+        return f"T_a {t_a[method]}, " if several and t_a.get(method) else ""
 
     rows = []
     for r in last.itertuples():
@@ -312,8 +313,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         ax.set_xlabel(f"TO iterations, {solver}")
         ax.set_ylabel("share of solves")
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
-    t_as = ",".join(str(int(t)) for t in sorted(last.t_a.dropna().unique()))
-    one_t_a = f", T_a = {t_as}" if t_as and "," not in t_as else ""      # several: each legend entry names its own
+    one_t_a = "" if several or last.t_a.dropna().empty else f", T_a = {int(last.t_a.dropna().iloc[0])}"
     fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}{one_t_a}"
                  f"{budget_title(d)})", fontsize=10)
     return [save_csv(tab, out / f"fig2b_{task}.csv"), save_fig(fig, out / f"fig2b_{task}.png")]
