@@ -159,3 +159,25 @@ def test_report_of_a_loop_run(loop_dir, tmp_path):
     f, _ = load_npz(loop_dir / "it1" / "eval" / "refined_ta4.npz", kind="dataset")
     assert f["inst_base_X"].shape == (3, 101, 2) and bool(f["inst_base_converged"].all())
     assert not pd.isna(f["inst_base_X"]).any()
+
+
+def test_trajectory_figure_draws_later_methods_thinner_so_coinciding_paths_all_show(loop_dir, monkeypatch):
+    """Two methods whose rollouts coincide (here the same files under two names): the one drawn first is wider,
+    so it shows on both sides of the one drawn over it (SDP's line hid PDDP+S's on quadrotor-0, both 1.4 wide)."""
+    import importlib
+
+    from sdp_cli.report.runs import load_runs
+
+    traj = importlib.import_module("sdp_cli.report.figures.traj")     # the module (the package exports a function)
+    drawn = []
+    monkeypatch.setattr(traj, "save_fig", lambda fig, path: drawn.append(fig) or path)
+    d = load_runs(loop_dir.parent)
+    both = pd.concat([d, d.assign(method="dp", run="dp-copy")], ignore_index=True)
+    traj.trajectories(both, "pendulum", loop_dir.parent, n_show=2)
+    fig = drawn.pop()
+    for ax in fig.axes:
+        width = {ln.get_label(): ln.get_linewidth() for ln in ax.get_lines()}
+        # SDP sorts after DP, so it is drawn over DP's line: DP's is the wider, each refined line too
+        assert width["TO alone (naive guess)"] > width["DP policy"] > width["SDP policy"] >= 1.4, width
+        assert width["refined from DP"] > width["refined from SDP"] >= 1.0, width
+    traj.pyplot().close(fig)

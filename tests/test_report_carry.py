@@ -269,8 +269,8 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     paper.fig2b(pd.DataFrame(rows), "quadrotor-0", tmp_path, carried)
     title, labels = texts()
     assert "T_a =" not in title
-    assert any("SDP (T_a 31, 2 guesses)" in s for s in labels), labels
-    assert any("(T_a 1, 1 guesses)" in s for s in labels), labels
+    assert any("SDP: T_a 31, 2 guesses" in s for s in labels), labels
+    assert any("PDDP: T_a 1, 1 guesses" in s for s in labels), labels
     paper.fig2b(pd.DataFrame(rows[:1]), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))
     title, labels = texts()
     assert "T_a = 31" in title and not any("T_a 31" in s for s in labels), (title, labels)
@@ -279,3 +279,11 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     paper.fig2b(pd.DataFrame(two), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))
     title, labels = texts()
     assert "T_a =" not in title and any("T_a 15,31" in s for s in labels), (title, labels)
+    # a method named with its TO family ("SDP (TO fatrop)"): one bracket, not "(TO fatrop) (T_a 31, ...)"
+    fam = [dict(r, method=r["method"] + "-to-ms") for r in rows]
+    pd.read_csv(tmp_path / "fig2b_quadrotor-0.csv").assign(method=lambda t: t.method + "-to-ms").to_csv(
+        tmp_path / "fig2b_quadrotor-0.csv", index=False)
+    paper.fig2b(pd.DataFrame(fam), "quadrotor-0", tmp_path, carried)
+    title, labels = texts()
+    assert any("SDP (TO fatrop): T_a 31, 2 guesses" in s for s in labels), labels
+    assert not any(") (" in s for s in labels), labels

@@ -305,7 +305,7 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
             ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,
                     color=COLORS.get(method, among=pol.method),
-                    label=f"warm-started by {method_label(method)} ({ta_of(method)}{len(g)} guesses), "
+                    label=f"warm-started by {method_label(method)}: {ta_of(method)}{len(g)} guesses, "
                           f"mean {g.iterations.mean():.0f}")
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)

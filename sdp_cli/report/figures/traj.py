@@ -60,6 +60,13 @@ def _refine_note(f: dict, j: int) -> str:
     return ", refine not converged" if ok is not None and not bool(ok[j]) else ""
 
 
+def line_widths(n: int, thinnest: float, step: float) -> list[float]:
+    """Line widths of ``n`` series drawn in turn, widest first, ``step`` apart: each later line is thinner, so
+    where two paths coincide the earlier one still shows on both sides of the one drawn over it (SDP's line hid
+    PDDP+S's on quadrotor-0, both 1.4 wide)."""
+    return [thinnest + step * (n - 1 - i) for i in range(n)]
+
+
 def traj_parts(df: pd.DataFrame, task: str) -> list[tuple[str, pd.DataFrame]]:
     """``(file name, rows)`` of each trajectory figure of ``task``: one ``traj_<task>.png`` of all its rows,
     or, where its methods are drawn per TO family (``sdp-to-ddp``, :func:`~sdp_cli.report.rows.method_variants`),
@@ -138,11 +145,13 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4, n
                 ax.plot(np.arange(len(X)) * task.dt, [task.goal_distance(x, xi) for x in X], label=label, **kw)
         # TO alone that did not converge is drawn dotted: its last iterate, not a solution
         failed = base_ok is not None and not base_ok[j]
-        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=2.4, alpha=0.7, ls=":" if failed else "-")
-        for m, (r, f, _, _) in runs.items():
-            draw(r["X"][j], f"{method_label(m)} policy", color=COLORS.get(m, "tab:orange", among=runs), lw=1.4)
+        # TO alone first and widest, then each method's policy line (and its refined one) thinner than the last
+        lw_to, *lw_pols = line_widths(len(runs) + 1, 1.4, 0.6)
+        draw(f0["inst_base_X"][j], "TO alone (naive guess)", color="0.55", lw=lw_to, alpha=0.7, ls=":" if failed else "-")
+        for (m, (r, f, _, _)), lw_pol, lw_ref in zip(runs.items(), lw_pols, line_widths(len(runs), 1.0, 0.45)):
+            draw(r["X"][j], f"{method_label(m)} policy", color=COLORS.get(m, "tab:orange", among=runs), lw=lw_pol)
             draw(f["inst_pol_X"][j], f"refined from {method_label(m)}", color=COLORS.get(m, "tab:orange", among=runs),
-                 lw=1.0, ls="--")
+                 lw=lw_ref, ls="--")
         if top:
             P0 = trajectory_points(task, task.initial_state(xi)[None])
             ax.plot(P0[0, ix], P0[0, iy], "o", color="tab:blue", ms=5, label="start")
