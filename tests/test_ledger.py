@@ -393,7 +393,7 @@ def test_fig1_claims_on_synthetic_rows():
     r = mlp_unstable({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "solves at n_traj 8, 16" in r.ours
     assert "unstable on pendulum, quadrotor-0, ur5-fixed" in r.ours
-    assert "pendulum: DP 0%, PDDP 50%, PDDP_S 50%, SDP 0%; quadrotor-0: DP 0%, PDDP 50%, PDDP_S 50%" in r.ours
+    assert "pendulum: DP 0%, PDDP 50%, PDDP+S 50%, SDP 0%; quadrotor-0: DP 0%, PDDP 50%, PDDP+S 50%" in r.ours
     # a task where one MLP has run (a sweep under way) is named, not judged on that MLP alone, and the
     # verdict waits for it
     d = _fig1_rows()
@@ -409,7 +409,7 @@ def test_fig1_claims_on_synthetic_rows():
     d = pd.concat([d[d.task != "ur5-fixed"]] * 5 + [d[(d.task == "ur5-fixed") & (d.train_seed == 0)]])
     d = d[d.task != "quadrotor-0"]
     r = mlp_unstable({"fig1": d})
-    assert "unstable on ur5-fixed" in r.ours and "pendulum: DP 0%, PDDP 0%, PDDP_S 0%, SDP 0%" in r.ours
+    assert "unstable on ur5-fixed" in r.ours and "pendulum: DP 0%, PDDP 0%, PDDP+S 0%, SDP 0%" in r.ours
     assert r.verdict == "partly"
 
 

@@ -14,7 +14,7 @@ import pandas as pd
 
 from sdp_cli.report.figures.paper import _agg
 from sdp_cli.report.rows import loop_t_a, mean_ci
-from sdp_cli.report.figures.style import COLORS, pyplot, save_csv, save_fig
+from sdp_cli.report.figures.style import COLORS, method_label, pyplot, save_csv, save_fig
 
 
 def ablation_k(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
@@ -35,7 +35,7 @@ def ablation_k(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Pat
             # the earlier checkpoint: dashed, square markers, drawn a little to the left (no overlap)
             ax.errorbar(g.k_rollout * (1.0 if final else 0.95), g["mean"], yerr=g.ci95.fillna(0),
                         ls="-" if final else "--", marker="o" if final else "s", capsize=3,
-                        color=COLORS.get(method), label=f"{method.upper()} ({int(epochs)} ep.)")
+                        color=COLORS.get(method), label=f"{method_label(method)} ({int(epochs)} ep.)")
         if quantity == "policy cost" and to == to:
             ax.axhline(to, color="black", ls=":", label="TO alone")
         ax.set_xscale("log")

@@ -65,8 +65,11 @@ class _Shades(dict):
         self.shade = shade
 
 
+PAPER_NAMES = {"pddp_s": "PDDP+S"}    # the paper's name where upper-casing ours does not give it
+
+
 def method_label(method: str) -> str:
-    """Legend name: ``SDP``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)`` (the loop's TO family
+    """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)`` (the loop's TO family
     by its solver, :data:`~sdp_cli.report.rows.TO_FAMILIES`)."""
     base, family = split_family(method)
     if family:
@@ -75,7 +78,7 @@ def method_label(method: str) -> str:
     if pair:
         return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
     base, sep, rest = str(method).partition("-")
-    return base.upper() + sep + rest
+    return PAPER_NAMES.get(base, base.upper()) + sep + rest
 
 
 COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)

@@ -16,6 +16,7 @@ import pandas as pd
 
 from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
 from sdp_cli.report.rows import last_iteration, loop_t_a, per_seed, unfinished
+from sdp_cli.report.figures.style import method_label
 from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 
 __all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
@@ -35,11 +36,11 @@ def fig2_only_sdp(res, p) -> Row:
     for m in ("sdp", "dp", "pddp", "pddp_s"):
         g = last[last.method == m]
         if g.empty:
-            parts.append(f"{m.upper()}: " + ("not finished" if (d.method == m).any() else "not run"))
+            parts.append(f"{method_label(m)}: " + ("not finished" if (d.method == m).any() else "not run"))
             continue
         sr = per_seed(g, "success_rate")
         solved[m] = sr.mean() >= p["solved"]
-        parts.append(f"{m.upper()} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}"
+        parts.append(f"{method_label(m)} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}"
                      + distance_text(g))
     sdp = loop_t_a(d[d.method == "sdp"])
     near = ""
@@ -191,11 +192,11 @@ def quadrotor_precision(res, p) -> Row:
              if "obstacles_violation_rate" in g and g.obstacles_violation_rate.notna().any() else None)
 
         def vs(d, fmt):   # "SDP x vs DP y", or one method's value where the other was not run
-            return " vs ".join(f"{m.upper()} {fmt(d[m])}" for m in ("sdp", "dp") if m in d)
+            return " vs ".join(f"{method_label(m)} {fmt(d[m])}" for m in ("sdp", "dp") if m in d)
         pct = lambda x: f"{100 * x:.0f}%"  # noqa: E731
         hit = f" (an obstacle: {vs(o, pct)})" if o else ""
         started = set(res["fig4"][res["fig4"].task == task].method)      # a loop partway is named as such
-        missing = "".join(f"; {m.upper()} {'not finished' if m in started else 'not run yet'}"
+        missing = "".join(f"; {method_label(m)} {'not finished' if m in started else 'not run yet'}"
                           for m in ("sdp", "dp") if m not in by)
         parts.append(f"{task}: success {vs(s, pct)}, constraint violated {vs(v, pct)}{hit}, final distance "
                      f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")

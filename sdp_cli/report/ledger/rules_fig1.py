@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from sdp_cli.report.figures.style import method_label
 from sdp_cli.report.ledger.verdicts import Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 from sdp_cli.report.rows import per_seed
 
@@ -37,7 +38,7 @@ def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...], tasks: list[str]) -
     one of ``methods``, each with the methods it lacks ("" when none); a task with only PDDP runs is no
     evidence for a claim about SDP and DP. ``tasks``: Fig. 1's tasks (a claim over all of them is at most
     "partly" while one is missing)."""
-    missing = {t: [m.upper() for m in methods if not ((d.task == t) & (d.method == m)).any()] for t in tasks}
+    missing = {t: [method_label(m) for m in methods if not ((d.task == t) & (d.method == m)).any()] for t in tasks}
     parts = [f"{t} ({', '.join(ms)})" for t, ms in missing.items() if ms]
     return f"fig1 not run on {', '.join(parts)}" if parts else ""
 
@@ -146,7 +147,7 @@ def mlp_unstable(res, p) -> Row:
     per_task, unstable, one_only = [], {}, []
     for t, g in sorted(d.groupby("task")):
         share = {m: float((gm.diverged > 0).mean()) for m, gm in g.groupby("method")}
-        per_task.append(f"{t}: " + ", ".join(f"{m.upper()} {100 * v:.0f}%" for m, v in sorted(share.items())))
+        per_task.append(f"{t}: " + ", ".join(f"{method_label(m)} {100 * v:.0f}%" for m, v in sorted(share.items())))
         mlp = [share[m] for m in ("pddp", "pddp_s") if m in share]
         diff = [share[m] for m in ("sdp", "dp") if m in share]
         if len(mlp) == 2:   # the rule is about both MLPs: a task with one of them is not judged yet
