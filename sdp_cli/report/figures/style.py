@@ -69,8 +69,8 @@ PAPER_NAMES = {"pddp_s": "PDDP+S"}    # the paper's name where upper-casing ours
 
 
 def method_label(method: str) -> str:
-    """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)`` (the loop's TO family
-    by its solver, :data:`~sdp_cli.report.rows.TO_FAMILIES`)."""
+    """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)``
+    (the loop's TO family by its solver, :data:`~sdp_cli.report.rows.TO_FAMILIES`)."""
     base, family = split_family(method)
     if family:
         return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"

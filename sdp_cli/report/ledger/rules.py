@@ -61,7 +61,7 @@ def fig2_only_sdp(res, p) -> Row:
     else:
         verdict = "reproduced" if (len(others) == 3 and near_ok) else "partly"
     missing = [m for m in ("dp", "pddp", "pddp_s") if m not in solved]
-    detail = "; ".join(x for x in (f"methods without a finished run yet: {', '.join(missing)}" if missing else "",
+    detail = "; ".join(x for x in (f"methods without a finished run yet: {', '.join(map(method_label, missing))}" if missing else "",
                                    unfinished(d)) if x)
     return Row("; ".join(parts) + near, verdict, detail)
 
