@@ -161,7 +161,8 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     import pandas as pd
 
     from sdp_cli.report.rows import loop_t_a as _loop_t_a
-    from sdp_cli.report.figures.style import COLORS, MARKERS, method_label, method_order
+    from sdp_cli.report.figures.style import COLORS, MARKERS, method_order
+    from sdp_cli.report.rows import method_label
     from sdp_cli.report.rows import method_variants
 
     rows = []
@@ -510,7 +511,8 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
 
     from sdp_cli.report.figures import paper
     from sdp_cli.report.figures.paper import fig1, fig2a, fig2b, table2c
-    from sdp_cli.report.figures.style import COLORS, method_label
+    from sdp_cli.report.figures.style import COLORS
+    from sdp_cli.report.rows import method_label
     from sdp_cli.report.rows import family_of, method_variants, plain_method
 
     rows = []

@@ -4,7 +4,8 @@ Rows are ``all_runs.csv``'s (:func:`sdp_cli.report.runs.load_runs`): one per run
 evaluated checkpoint. The figures draw a method's *variants* apart (:func:`method_variants`) and most of them
 one budget per method (:func:`largest_budget`); loops are read at the T_a evaluated at every iteration
 (:func:`loop_t_a`); the ledger reads a loop's final iteration (:func:`last_iteration`), names the runs that
-have not reached it (:func:`unfinished`) and averages per seed (:func:`per_seed`, :func:`mean_ci`).
+have not reached it (:func:`unfinished`) and averages per seed (:func:`per_seed`, :func:`mean_ci`). Variants are
+named in legends and the ledger as the paper names its methods (:func:`method_label`).
 """
 
 from __future__ import annotations
@@ -123,6 +124,28 @@ def plain_method(method: str) -> str:
     """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
     :func:`method_variants`)."""
     return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", split_family(method)[0])
+
+
+def ta_pair(method: str) -> tuple[int, int] | None:
+    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
+    m = re.fullmatch(r"h(\d+)-ta(\d+)", str(method).partition("-")[2])
+    return (int(m[1]), int(m[2])) if m else None
+
+
+PAPER_NAMES = {"pddp_s": "PDDP+S"}    # the paper's name where upper-casing ours does not give it
+
+
+def method_label(method: str) -> str:
+    """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)``
+    (the loop's TO family by its solver, :data:`TO_FAMILIES`)."""
+    base, family = split_family(method)
+    if family:
+        return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
+    pair = ta_pair(method)
+    if pair:
+        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
+    base, sep, rest = str(method).partition("-")
+    return PAPER_NAMES.get(base, base.upper()) + sep + rest
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:

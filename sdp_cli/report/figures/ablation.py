@@ -13,8 +13,8 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli.report.figures.paper import _agg
-from sdp_cli.report.rows import loop_t_a, mean_ci
-from sdp_cli.report.figures.style import COLORS, method_label, pyplot, save_csv, save_fig
+from sdp_cli.report.rows import loop_t_a, mean_ci, method_label
+from sdp_cli.report.figures.style import COLORS, pyplot, save_csv, save_fig
 
 
 def ablation_k(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:

@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci
-from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_label, method_order,
+from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci, method_label
+from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_order,
                                   pyplot, save_csv, save_fig, save_md)
 
 DIVERGED = 1e5

@@ -1,4 +1,4 @@
-"""How the report's figures and tables look and are written: method colours, markers, legend names and
+"""How the report's figures and tables look and are written: method colours, markers and legend
 order (variants ``<method>-K<k>`` and ``<method>-h<T_h>-ta<T_a>`` included), readable log ticks, the Agg
 backend, and atomic writes of PNG, CSV and markdown files."""
 
@@ -12,16 +12,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.report.rows import TO_FAMILIES, split_family
-
-_HTA = re.compile(r"h(\d+)-ta(\d+)")
-
-
-def _pair(method: str) -> tuple[int, int] | None:
-    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
-    m = _HTA.fullmatch(str(method).partition("-")[2])
-    return (int(m[1]), int(m[2])) if m else None
-
+from sdp_cli.report.rows import split_family, ta_pair
 
 class _Shades(dict):
     """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
@@ -41,7 +32,7 @@ class _Shades(dict):
 
             return tuple(c + (1 - c) * 0.45 for c in mc.to_rgb(value))
         base, _, variant = str(key).partition("-")
-        k, pair = re.fullmatch(r"K(\d+)", variant), _pair(key)
+        k, pair = re.fullmatch(r"K(\d+)", variant), ta_pair(key)
         if base not in self or not (k or pair):
             return default
         value = self[base]
@@ -52,7 +43,7 @@ class _Shades(dict):
         if k:    # darker for K < 5, lighter for K > 5
             mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
         else:
-            pairs = sorted({p for p in map(_pair, among) if p} | {pair})
+            pairs = sorted({p for p in map(ta_pair, among) if p} | {pair})
             mix = (-0.55 + 1.1 * pairs.index(pair) / (len(pairs) - 1) if len(pairs) > 1
                    else float(np.clip(0.6 * np.log2(sum(pair) / 85), -0.6, 0.6)))
         rgb = mc.to_rgb(value)
@@ -63,22 +54,6 @@ class _Shades(dict):
     def __init__(self, values: dict, shade: bool):
         super().__init__(values)
         self.shade = shade
-
-
-PAPER_NAMES = {"pddp_s": "PDDP+S"}    # the paper's name where upper-casing ours does not give it
-
-
-def method_label(method: str) -> str:
-    """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)``
-    (the loop's TO family by its solver, :data:`~sdp_cli.report.rows.TO_FAMILIES`)."""
-    base, family = split_family(method)
-    if family:
-        return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
-    pair = _pair(method)
-    if pair:
-        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
-    base, sep, rest = str(method).partition("-")
-    return PAPER_NAMES.get(base, base.upper()) + sep + rest
 
 
 COLORS = _Shades({"sdp": "tab:red", "dp": "tab:blue", "pddp": "tab:green", "pddp_s": "tab:purple", "to": "black"}, True)

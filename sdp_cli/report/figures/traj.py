@@ -15,8 +15,8 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.figures.paper import _named
-from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, split_family
-from sdp_cli.report.figures.style import COLORS, method_label, method_order, pyplot, save_fig
+from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, method_label, split_family
+from sdp_cli.report.figures.style import COLORS, method_order, pyplot, save_fig
 
 
 def _best_rollout(d: pd.DataFrame):

@@ -15,8 +15,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
-from sdp_cli.report.rows import last_iteration, loop_t_a, per_seed, unfinished
-from sdp_cli.report.figures.style import method_label
+from sdp_cli.report.rows import last_iteration, loop_t_a, method_label, per_seed, unfinished
 from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 
 __all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]

@@ -6,9 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.figures.style import method_label
 from sdp_cli.report.ledger.verdicts import Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
-from sdp_cli.report.rows import per_seed
+from sdp_cli.report.rows import method_label, per_seed
 
 def sdp_reaches_to(res, p) -> Row:
     """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K =
