@@ -196,6 +196,7 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     dark, light = (np.array(mc.to_rgb(COLORS.get(m, among=few))) for m in few)
     assert dark.sum() < red.sum() < light.sum()
     assert method_label("sdp-h64-ta63") == "SDP (T_h 64, T_a 63)" and method_label("pddp_s-K2") == "PDDP+S-K2"
+    assert method_label("pddp_s-h32-ta16") == "PDDP+S (T_h 32, T_a 16)"           # the paper's name, not PDDP_S
 
 
 def test_loop_figures_use_one_budget_per_method():

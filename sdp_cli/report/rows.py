@@ -141,11 +141,10 @@ def method_label(method: str) -> str:
     base, family = split_family(method)
     if family:
         return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
-    pair = ta_pair(method)
-    if pair:
-        return f"{str(method).partition('-')[0].upper()} (T_h {pair[0]}, T_a {pair[1]})"
     base, sep, rest = str(method).partition("-")
-    return PAPER_NAMES.get(base, base.upper()) + sep + rest
+    name = PAPER_NAMES.get(base, base.upper())
+    pair = ta_pair(method)
+    return f"{name} (T_h {pair[0]}, T_a {pair[1]})" if pair else name + sep + rest
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:
