@@ -287,3 +287,28 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     title, labels = texts()
     assert any("SDP (TO fatrop): T_a 31, 2 guesses" in s for s in labels), labels
     assert not any(") (" in s for s in labels), labels
+
+
+def test_fig2b_outlines_that_coincide_stay_visible(tmp_path, monkeypatch):
+    """With fatrop every warm start took 8 iterations: DP's, PDDP's, PDDP+S's and SDP's step outlines coincided
+    and the last one drawn hid the others (fig2b_double_pendulum's fatrop panel). Each is drawn narrower than the
+    one before it, so every outline keeps a visible edge."""
+    from matplotlib.patches import Polygon
+
+    from sdp_cli.report.figures import paper
+
+    drawn = []
+    monkeypatch.setattr(paper, "save_fig", lambda fig, path: drawn.append(fig) or path)
+    methods = ("dp", "pddp", "pddp_s", "sdp")
+    rows = [{"task": "double_pendulum", "method": m, "t_a": 4, "iteration": 4, "run": f"{m}-s0", "refined": None}
+            for m in methods]
+    pd.DataFrame({"solver": "multiple shooting", "method": [*methods, "dp"], "guess": ["policy"] * 4 + ["naive"],
+                  "iterations": [8, 8, 8, 8, 30], "run": [f"{m}-s0" for m in (*methods, "dp")]}
+                 ).to_csv(tmp_path / "fig2b_double_pendulum.csv", index=False)
+    paper.fig2b(pd.DataFrame(rows), "double_pendulum", tmp_path, Carried(tmp_path, frozenset(r["run"] for r in rows)))
+    fig = drawn.pop()
+    outlines = [p for p in fig.axes[0].patches if isinstance(p, Polygon) and not p.get_fill()]
+    paper.pyplot().close(fig)
+    widths = [p.get_linewidth() for p in outlines]
+    assert len(widths) == 4, widths
+    assert all(a - b >= 0.5 for a, b in zip(widths, widths[1:])), widths   # each visibly wider than the next

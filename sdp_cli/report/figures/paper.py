@@ -285,6 +285,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     fam = tab.method.map(family_of)
     loop_to = (tab.solver == "multiple shooting") & (fam != "ms")   # the loop's TO is another family's solver
     tab.loc[loop_to, "solver"] = fam[loop_to].map(lambda f: TO_FAMILIES.get(f, f))
+    from matplotlib.lines import Line2D
+
     plt = pyplot()
     order = ["multiple shooting", *(v for k, v in TO_FAMILIES.items() if k != "ms"), "single shooting"]
     solvers = [s for s in order if s in set(tab.solver)] + sorted(set(tab.solver) - set(order))
@@ -302,21 +304,33 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                 color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
                 label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
-        for method, g in sorted(pol.groupby("method"), key=lambda x: method_order(x[0])):
-            ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=2,
-                    color=COLORS.get(method, among=pol.method),
-                    label=f"warm-started by {method_label(method)}: {ta_of(method)}{len(g)} guesses, "
-                          f"mean {g.iterations.mean():.0f}")
+        groups = sorted(pol.groupby("method"), key=lambda x: method_order(x[0]))
+        # outlines drawn widest first: where histograms coincide (every warm start at 8 iterations) each one's
+        # edge still shows beside the narrower ones drawn over it
+        handles = [ax.get_legend_handles_labels()[0][0]]
+        for (method, g), lw in zip(groups, outline_widths(len(groups))):
+            color = COLORS.get(method, among=pol.method)
+            label = f"warm-started by {method_label(method)}: {ta_of(method)}{len(g)} guesses, " \
+                    f"mean {g.iterations.mean():.0f}"
+            ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=lw,
+                    color=color, label=label)
+            handles.append(Line2D([], [], color=color, lw=lw, label=label))   # a line of the outline's width
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
         log_ticks(ax.xaxis, lo_x, hi_x)
         ax.set_xlabel(f"TO iterations, {solver}")
         ax.set_ylabel("share of solves")
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)   # below: no bar hidden
+        ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16),
+                  frameon=False)   # below: no bar hidden
     one_t_a = "" if several or last.t_a.dropna().empty else f", T_a = {int(last.t_a.dropna().iloc[0])}"
     fig.suptitle(f"Fig. 2b — TO iterations, {task} (iteration {int(d.iteration.max())}{one_t_a}"
                  f"{budget_title(d)})", fontsize=10)
     return [save_csv(tab, out / f"fig2b_{task}.csv"), save_fig(fig, out / f"fig2b_{task}.png")]
+
+
+def outline_widths(n: int, widest: float = 5.0, narrowest: float = 1.5) -> list[float]:
+    """Line widths of ``n`` outlines drawn one over another, widest first, each one visibly wider than the next."""
+    return list(np.linspace(widest, narrowest, n)) if n > 1 else [2.0] * n
 
 
 TABLE2C = {"policy_cost_mean": "policy cost (mean)", "policy_cost_median": "policy cost (median)",
