@@ -269,6 +269,7 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     paper.fig2b(pd.DataFrame(rows), "quadrotor-0", tmp_path, carried)
     title, labels = texts()
     assert "T_a =" not in title
+    assert labels[0].startswith("TO alone (naive guess, "), labels   # the filled histogram's entry
     assert any("SDP: T_a 31, 2 guesses" in s for s in labels), labels
     assert any("PDDP: T_a 1, 1 guesses" in s for s in labels), labels
     paper.fig2b(pd.DataFrame(rows[:1]), "quadrotor-0", tmp_path, Carried(tmp_path, frozenset({"sdp-s0"})))

@@ -300,20 +300,21 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         # instances whatever the loop's TO was
         f = min(t.method.map(family_of))
         base = _to_alone_once(t[t.method.map(family_of) == f])
-        ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)), histtype="stepfilled",
-                color="0.85" if f == "ms" else "0.65", edgecolor="0.4", lw=1.2, alpha=1 if f == "ms" else 0.6,
-                label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
+        *_, base_patches = ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)),
+                                   histtype="stepfilled", color="0.85" if f == "ms" else "0.65", edgecolor="0.4",
+                                   lw=1.2, alpha=1 if f == "ms" else 0.6,
+                                   label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
         groups = sorted(pol.groupby("method"), key=lambda x: method_order(x[0]))
         # outlines drawn widest first: where histograms coincide (every warm start at 8 iterations) each one's
         # edge still shows beside the narrower ones drawn over it
-        handles = [ax.get_legend_handles_labels()[0][0]]
+        handles = [base_patches[0]]   # hist puts its label on the first patch
         for (method, g), lw in zip(groups, outline_widths(len(groups))):
             color = COLORS.get(method, among=pol.method)
             label = f"warm-started by {method_label(method)}: {ta_of(method)}{len(g)} guesses, " \
                     f"mean {g.iterations.mean():.0f}"
             ax.hist(g.iterations, bins=bins, weights=np.full(len(g), 1 / len(g)), histtype="step", lw=lw,
-                    color=color, label=label)
+                    color=color)
             handles.append(Line2D([], [], color=color, lw=lw, label=label))   # a line of the outline's width
         ax.set_xscale("log")
         ax.set_xlim(lo_x, hi_x)
