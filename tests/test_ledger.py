@@ -127,6 +127,12 @@ def test_rows_name_the_results_version_of_their_runs(tmp_path):
     text = write_ledger(tmp_path / "PAPER.md").read_text()
     assert f"| 1 (fatrop); {RESULTS_VERSION} (box-FDDP) | **" in text
     assert all(f"- version {v}: {RESULTS_HISTORY[v]}." in text for v in range(2, RESULTS_VERSION + 1))
+    p = tmp_path / "fig4" / "all_runs.csv"                    # claim 10 reads quadrotor-9 only, claim 9 every layout
+    d = pd.read_csv(p)
+    d["results_version"] = (d["task"] == "quadrotor-9").map({True: 1, False: RESULTS_VERSION})
+    d.to_csv(p, index=False)
+    got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}
+    assert got[10]["runs"] == "1" and got[9]["runs"] == f"1, {RESULTS_VERSION}"
     p = tmp_path / "fig1" / "all_runs.csv"
     pd.read_csv(p).assign(results_version=None).to_csv(p, index=False)      # unknown (git did not know)
     got = {r["id"]: r for r in ledger_rows(load_results(tmp_path), claims, rules)}

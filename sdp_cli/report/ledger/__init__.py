@@ -117,9 +117,12 @@ def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
 
 
 def _run_versions(c: dict, res: dict) -> list[float]:
-    """The results version of every row of the reports claim ``c`` needs (NaN: unknown; empty: a bench)."""
-    return [v for d in _reports(c, res)
-            for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
+    """The results version of every row claim ``c`` reads: the rows of the reports it needs, of its one task where
+    its ``params`` name one (``task``: the rule reads that task only; ``tasks`` and ``layouts`` are what a rule
+    requires, and it reads every task) (NaN: unknown; empty: a bench)."""
+    task = (c.get("params") or {}).get("task")
+    rows = [d[d["task"] == task] if task and "task" in d else d for d in _reports(c, res)]
+    return [v for d in rows for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
 
 
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
