@@ -232,11 +232,12 @@ def test_loop_figures_use_one_budget_per_method():
 
 def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     """Per group of the experiment file: runs finished (last iteration at the group's epochs; those of an older
-    results version counted apart), partway (named, with iterations or epochs so far) and not run; no section
+    results version counted apart), partway (named, with iterations or epochs so far) and not run; one line
     once every run finished at the current results version."""
     import pandas as pd
     import yaml
 
+    from sdp_cli import RESULTS_VERSION
     from sdp_cli.report.coverage import coverage_lines, experiment_coverage
 
     (tmp_path / "pipelines").mkdir()
@@ -270,10 +271,10 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
         ("ur5-rinit-sdp-n50-s0-h64-ta63", 3, 100), ("ur5-rinit-dp-n50-s0-h64-ta63", 3, 100),
         ("pendulum-sdp-n1-s0", 1, 2000), ("pendulum-sdp-n3-s0", 1, 2000), ("pendulum-sdp-n1-s1", 1, 2000),
         ("pendulum-sdp-n3-s1", 1, 2000)) for it in range(n)]
-    assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == []
+    # every run finished at the code's results version (or of none recorded): one line says so
+    assert coverage_lines(pd.DataFrame(done), "x", tmp_path) == [
+        "", f"## Runs of `pipelines/x.yaml` in this report: all 6 finished, none of an older results version than {RESULTS_VERSION}"]
     # every run finished, two of them by code of an older results version: still to be re-made, and said so
-    from sdp_cli import RESULTS_VERSION
-
     old = pd.DataFrame(done).assign(results_version=RESULTS_VERSION)
     old.loc[old.run.isin(["pendulum-sdp-n1-s0", "pendulum-sdp-n3-s0"]), "results_version"] = 1
     old.loc[old.run == "ur5-rinit-sdp-n50-s0-h64-ta63", "results_version"] = float("nan")   # unknown: not counted

@@ -2,7 +2,7 @@
 their last iteration, those partway (with ``evaluated / n_algo``) and those not in the report.
 
 A report drawn while runs go on (or after some were left out for lack of time) says so in its README
-instead of letting a figure pass for the whole experiment; finished runs of an older results version than
+instead of letting a figure pass for the whole experiment, and a complete one says that it is; finished runs of an older results version than
 the code's (:data:`sdp_cli.RESULTS_VERSION`, the rows' ``results_version``) are counted apart: they are still
 to be re-made. Reads the experiment file only
 (:mod:`sdp_cli.experiment`), never the runs' folders: the rows given are what the report drew.
@@ -59,12 +59,16 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
 
 def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
                    hours: dict[str, float] | None = None, hours_from: str = "") -> list[str]:
-    """The README section of :func:`experiment_coverage` (empty when every run finished); with ``hours``
-    (read from ``hours_from``), the runs not run carry their estimated hours."""
+    """The README section of :func:`experiment_coverage`: one line when every run finished at the code's
+    results version, else a table per group; with ``hours`` (read from ``hours_from``), the runs not run
+    carry their estimated hours. Empty for an experiment of no groups."""
     cov = experiment_coverage(df, name, root, hours)
-    if cov.empty or ((cov.finished == cov.runs).all() and not cov.older.any()):
+    if cov.empty:
         return []
     total, fin, old = int(cov.runs.sum()), int(cov.finished.sum()), int(cov.older.sum())
+    if fin == total and not old:
+        return ["", f"## Runs of `pipelines/{name}.yaml` in this report: all {total} finished, none of an older "
+                f"results version than {RESULTS_VERSION}"]
     lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished"
              + (f", {old} of them of an older results version than {RESULTS_VERSION}" if old else ""), "",
              "Partway: iterations evaluated of the run's n_algo (stopped or still running); not run: no evaluation "
