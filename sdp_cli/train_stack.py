@@ -32,7 +32,8 @@ from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.diffusion import chunk_tangents
 from sdp_cli.stack_optim import StackedOptimisation
 
-#: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes everywhere)
+#: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes on every machine
+#: of one CPU kind)
 DEFAULT_STACK = 8
 
 

@@ -105,9 +105,37 @@ def provenance() -> dict[str, Any]:
     return {"versions": versions, "git_rev": code_revision(), "python": platform.python_version()}
 
 
-def machine() -> dict[str, str]:
-    """The machine that wrote an artifact: platform (kernel) and CPU model, kept in its timing sidecar."""
-    return {"platform": platform.platform(), "cpu_model": _cpu_model()}
+#: CPU flags that decide which kernels oneDNN (torch's CPU convolutions) and MKL run, and so the last bits of a
+#: training run: the same seed trains other bytes on a CPU with AVX-512 than on one with AVX2 only (docs/artifacts.md)
+SIMD_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16")
+
+
+def machine() -> dict[str, Any]:
+    """The machine that wrote an artifact, kept in its timing sidecar: platform (kernel), CPU model, the CPU's
+    :data:`SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen dispatches to."""
+    import sys
+
+    out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(), "cpu_simd": cpu_simd()}
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        out["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    return out
+
+
+def cpu_simd(cpuinfo: str | None = None) -> list[str]:
+    """The :data:`SIMD_FLAGS` of the first CPU in ``cpuinfo`` (default: /proc/cpuinfo; empty where it cannot be
+    read, e.g. not on Linux), in :data:`SIMD_FLAGS`' order."""
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo") as f:
+                cpuinfo = f.read()
+        except OSError:
+            return []
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            have = set(line.split(":", 1)[1].split())
+            return [f for f in SIMD_FLAGS if f in have]
+    return []
 
 
 def _cpu_model() -> str:
