@@ -1,20 +1,20 @@
-"""Which CPU kernel settings change the bytes a training run writes? The same `sdp train` (seed, data, 1 torch
-thread) is run in fresh processes under each environment below, and the SHA-256 of each checkpoint is printed:
-equal hashes mean the setting does not reach the run's arithmetic on this machine.
+"""Which CPU kernel settings change what a training run computes? The same `sdp train` (seed, data, 1 torch
+thread) is run in fresh processes under each environment below, and the SHA-256 of each checkpoint's tensors is
+printed: equal hashes mean the setting does not reach the run's arithmetic on this machine.
 
     python bench/cpu_bytes.py [--task pendulum] [--n-traj 4] [--epochs 3] [--data DATASET.npz --method dp]
 
-- ``default``: no variable set (the kernels of this machine's CPU);
+- ``sdp's default``: no variable set, so ``import sdp_cli`` caps oneDNN, MKL and ATen at AVX2
+  (:mod:`sdp_cli.kernels`, on a CPU with AVX2);
 - ``default again``: the same, in another process (a run is reproducible on one machine);
-- ``ATEN_CPU_CAPABILITY=avx2``: ATen's own vectorised loops capped at AVX2;
-- ``MKL_ENABLE_INSTRUCTIONS=AVX2``: MKL (matrix products) capped at AVX2;
-- ``ONEDNN_MAX_CPU_ISA=AVX2``: oneDNN (torch's CPU convolutions) capped at AVX2;
-- all three together.
+- ``native ATen`` / ``native MKL`` / ``native oneDNN``: one library uncapped (``ATEN_CPU_CAPABILITY`` set to
+  this CPU's level, ``MKL_CBWR=AUTO``, ``ONEDNN_MAX_CPU_ISA=ALL``), the others capped;
+- ``native``: all three uncapped, the machine's own kernels (what every run did before 2026-12-04).
 
-On a CPU with AVX-512 a hash that changes under a cap at AVX2 is what another machine without AVX-512 would write
-(docs/artifacts.md, "Same seed, other CPU"). Without ``--data`` a small dataset of ``--task`` is collected first
-(``sdp collect``, in a temporary folder). Prints the CPU model, its SIMD flags
-(:func:`sdp_cli.data.artifacts.cpu_simd`) and torch's CPU capability beside the table.
+On a CPU with AVX-512 a ``native`` hash other than the default's is what separated two machines' runs of one
+seed before the cap (docs/artifacts.md, "Same seed, other CPU"). Without ``--data`` a small dataset of ``--task``
+is collected first (``sdp collect``, in a temporary folder). Prints the CPU model, its SIMD flags
+(:func:`sdp_cli.kernels.cpu_simd`) and torch's CPU capability beside the table.
 """
 
 from __future__ import annotations
@@ -28,21 +28,42 @@ import sys
 import tempfile
 from pathlib import Path
 
-CASES = {
-    "default": {},
-    "default again": {},
-    "ATEN_CPU_CAPABILITY=avx2": {"ATEN_CPU_CAPABILITY": "avx2"},
-    "MKL_ENABLE_INSTRUCTIONS=AVX2": {"MKL_ENABLE_INSTRUCTIONS": "AVX2"},
-    "ONEDNN_MAX_CPU_ISA=AVX2": {"ONEDNN_MAX_CPU_ISA": "AVX2"},
-    "all three": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2", "ONEDNN_MAX_CPU_ISA": "AVX2"},
-}
-#: variables that would change the kernels under a case (cleared in every case's process)
+#: variables that choose the kernels (cleared in every case's process, then set as the case says)
 CLEARED = ("ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_CBWR")
+
+
+def cases(simd: list[str]) -> dict[str, dict[str, str]]:
+    aten = {"ATEN_CPU_CAPABILITY": "avx512" if "avx512f" in simd else "avx2"}
+    mkl, onednn = {"MKL_CBWR": "AUTO"}, {"ONEDNN_MAX_CPU_ISA": "ALL"}
+    return {"sdp's default": {}, "default again": {}, "native ATen": aten, "native MKL": mkl,
+            "native oneDNN": onednn, "native": {**aten, **mkl, **onednn}}
+
+
 SDP = [sys.executable, "-m", "sdp_cli.cli"]
 
 
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+def weights_sha256(path: Path) -> str:
+    """SHA-256 of every tensor of a checkpoint (weights, EMA, optimizer state, normalizer) by key path: the
+    arithmetic's result, not the file (whose provenance records the kernel settings themselves)."""
+    import torch
+
+    from sdp_cli.policy.checkpoint import load_checkpoint
+
+    h = hashlib.sha256()
+
+    def walk(obj, key: str) -> None:
+        if isinstance(obj, torch.Tensor):
+            h.update(key.encode())
+            h.update(obj.detach().cpu().contiguous().numpy().tobytes())
+        elif isinstance(obj, dict):
+            for k in sorted(obj, key=str):
+                walk(obj[k], f"{key}/{k}")
+        elif isinstance(obj, (list, tuple)):
+            for i, v in enumerate(obj):
+                walk(v, f"{key}/{i}")
+
+    walk({k: v for k, v in load_checkpoint(path).items() if k != "provenance"}, "")
+    return h.hexdigest()
 
 
 def main() -> None:
@@ -57,7 +78,8 @@ def main() -> None:
 
     import torch
 
-    from sdp_cli.data.artifacts import cpu_simd, machine
+    from sdp_cli.data.artifacts import machine
+    from sdp_cli.kernels import cpu_simd
 
     base = {k: v for k, v in os.environ.items() if k not in CLEARED}
     with tempfile.TemporaryDirectory() as tmp:
@@ -68,21 +90,21 @@ def main() -> None:
                                   "--out", str(data), "--workers", "1", "--no-progress"],
                            check=True, env=base, stdout=subprocess.DEVNULL)
         rows = []
-        for i, (name, extra) in enumerate(CASES.items()):
+        for i, (name, extra) in enumerate(cases(cpu_simd()).items()):
             out = Path(tmp) / f"run{i}"
             cmd = SDP + ["train", "--data", str(data), "--out", str(out), "--method", args.method, "--epochs",
                          str(args.epochs), "--seed", "0", "--threads", "1", "--no-progress"]
             if args.horizon:
                 cmd += ["--horizon", str(args.horizon)]
             subprocess.run(cmd, check=True, env={**base, **extra}, stdout=subprocess.DEVNULL)
-            rows.append((name, sha256(out / "checkpoint.pt")))
+            rows.append((name, weights_sha256(out / "checkpoint.pt")))
     ref = rows[0][1]
     print(f"# {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {machine()['cpu_model']}, "
-          f"SIMD flags {','.join(cpu_simd()) or '-'}, torch {torch.__version__} CPU capability "
-          f"{torch.backends.cpu.get_cpu_capability()}")
+          f"SIMD flags {','.join(cpu_simd()) or '-'}, torch {torch.__version__} (CPU capability under sdp's "
+          f"default: {torch.backends.cpu.get_cpu_capability()})")
     print(f"# sdp train --method {args.method} --epochs {args.epochs} --seed 0 --threads 1 on "
           f"{args.data or f'{args.task}, {args.n_traj} trajectories (sdp collect --seed 0)'}")
-    print("| environment | checkpoint SHA-256 (first 16) | same bytes as default |")
+    print("| environment | tensors' SHA-256 (first 16) | same tensors as sdp's default |")
     print("|---|---|---|")
     for name, h in rows:
         print(f"| {name} | {h[:16]} | {'yes' if h == ref else 'no'} |")

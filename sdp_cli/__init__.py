@@ -2,6 +2,12 @@
 
 __version__ = "0.1.0"
 
+from sdp_cli.kernels import cap_cpu_kernels as _cap_cpu_kernels
+
+#: torch's CPU kernels capped at AVX2 before torch runs one, unless the user chose (sdp_cli/kernels.py): the same
+#: seed then trains the same bytes on any x86 CPU with AVX2
+_cap_cpu_kernels()
+
 #: Version of what runs measure. A commit that changes the numbers a run produces (chunk sampling, a
 #: task's definition, a loss, a solver's stopping rule, ...) bumps it and says what changed in
 #: :data:`RESULTS_HISTORY`; a comment, a refactor or a report change does not. Every loop run records it

@@ -33,7 +33,7 @@ from sdp_cli.policy.diffusion import chunk_tangents
 from sdp_cli.stack_optim import StackedOptimisation
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes on every machine
-#: of one CPU kind)
+#: with torch's CPU kernels capped: sdp_cli/kernels.py)
 DEFAULT_STACK = 8
 
 

@@ -48,17 +48,8 @@ def test_provenance_records_threads_and_cpu(tmp_path):
     rec = load_timing(tmp_path / "a.npz")["machine"]
     assert rec["cpu_model"]
     # the instruction sets that decide a training run's last bits (docs/artifacts.md), beside the CPU model
-    from sdp_cli.data.artifacts import cpu_simd
+    from sdp_cli.kernels import cpu_simd
 
     assert rec["cpu_simd"] == cpu_simd() and rec["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     assert "cpu_simd" not in prov and "torch_cpu_capability" not in prov
 
-
-def test_cpu_simd_reads_the_first_cpus_flags_in_a_fixed_order():
-    from sdp_cli.data.artifacts import cpu_simd
-
-    info = ("processor\t: 0\nmodel name\t: X\nflags\t\t: fpu sse2 avx512_bf16 avx2 fma avx512f lm\n\n"
-            "processor\t: 1\nflags\t\t: fpu amx_tile\n")
-    assert cpu_simd(info) == ["avx2", "fma", "avx512f", "avx512_bf16"]
-    assert cpu_simd("flags\t: fpu sse sse2\n") == []
-    assert cpu_simd("processor\t: 0\n") == []      # no flags line (another OS's format)

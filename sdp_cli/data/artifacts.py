@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from sdp_cli.errors import SdpError
+from sdp_cli.kernels import cpu_kernels, cpu_simd
 
 FORMAT_VERSION = 1
 _PACKAGES = ("sdp-cli", "numpy", "casadi", "pin", "example-robot-data", "torch", "diffusers")
@@ -105,14 +106,10 @@ def provenance() -> dict[str, Any]:
     return {"versions": versions, "git_rev": code_revision(), "python": platform.python_version()}
 
 
-#: CPU flags that decide which kernels oneDNN (torch's CPU convolutions) and MKL run, and so the last bits of a
-#: training run: the same seed trains other bytes on a CPU with AVX-512 than on one with AVX2 only (docs/artifacts.md)
-SIMD_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16")
-
-
 def machine() -> dict[str, Any]:
     """The machine that wrote an artifact, kept in its timing sidecar: platform (kernel), CPU model, the CPU's
-    :data:`SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen dispatches to."""
+    :data:`~sdp_cli.kernels.SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen
+    dispatches to (capped at AVX2 by default: :mod:`sdp_cli.kernels`)."""
     import sys
 
     out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(), "cpu_simd": cpu_simd()}
@@ -120,22 +117,6 @@ def machine() -> dict[str, Any]:
     if torch is not None:
         out["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     return out
-
-
-def cpu_simd(cpuinfo: str | None = None) -> list[str]:
-    """The :data:`SIMD_FLAGS` of the first CPU in ``cpuinfo`` (default: /proc/cpuinfo; empty where it cannot be
-    read, e.g. not on Linux), in :data:`SIMD_FLAGS`' order."""
-    if cpuinfo is None:
-        try:
-            with open("/proc/cpuinfo") as f:
-                cpuinfo = f.read()
-        except OSError:
-            return []
-    for line in cpuinfo.splitlines():
-        if line.startswith("flags"):
-            have = set(line.split(":", 1)[1].split())
-            return [f for f in SIMD_FLAGS if f in have]
-    return []
 
 
 def _cpu_model() -> str:
@@ -150,11 +131,13 @@ def _cpu_model() -> str:
 
 
 def runtime_provenance() -> dict[str, Any]:
-    """:func:`provenance` plus what can change within a process: torch's CPU thread count and the
-    CUDA device (when torch is loaded). Timing-free: equal for equal settings."""
+    """:func:`provenance` plus what can change within a process: the CPU kernel caps in effect
+    (:mod:`sdp_cli.kernels`), torch's CPU thread count and the CUDA device (when torch is loaded). Timing-free:
+    equal for equal settings."""
     import sys
 
     out = dict(provenance())
+    out["cpu_kernels"] = cpu_kernels()
     torch = sys.modules.get("torch")
     if torch is not None:
         out["torch_threads"] = torch.get_num_threads()
