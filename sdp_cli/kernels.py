@@ -1,12 +1,14 @@
-"""torch's CPU kernels capped at one instruction-set level, so that a seed trains the same bytes on any x86 CPU.
+"""CPU kernels capped at one instruction-set level, so that a seed gives the same numbers on any x86 CPU.
 
-torch's CPU convolutions (oneDNN), its matrix products (MKL) and its own vectorised loops (ATen) choose their
-kernels by the CPU's SIMD level, and kernels of another level round otherwise: the same seed trained other
-weights on a CPU with AVX-512 than on one with AVX2 only (docs/artifacts.md, "Same seed, other CPU";
-``python bench/cpu_bytes.py``). ``import sdp_cli`` calls :func:`cap_cpu_kernels`: where the CPU has AVX2, each
-variable of :data:`PORTABLE` the user has not set is set to AVX2; one the user set wins (``ONEDNN_MAX_CPU_ISA=ALL``:
-the machine's own kernels). torch reads them when it first runs such a kernel, so a program that ran torch
-before importing sdp_cli exports them itself. Artifacts record the values in effect (``provenance.cpu_kernels``).
+torch's CPU convolutions (oneDNN), its matrix products (MKL), its own vectorised loops (ATen) and numpy's
+OpenBLAS choose their kernels by the CPU's SIMD level, and kernels of another level round otherwise: the same
+seed trained other weights (oneDNN), and rolled a policy out to other states (OpenBLAS), on a CPU with AVX-512
+than on one with AVX2 only (docs/artifacts.md, "Same seed, other CPU"; ``python bench/cpu_bytes.py``).
+``import sdp_cli`` calls :func:`cap_cpu_kernels`: where the CPU has AVX2 and FMA, each variable of
+:data:`PORTABLE` the user has not set is set to the AVX2 level; one the user set wins (``ONEDNN_MAX_CPU_ISA=ALL``:
+oneDNN's own choice). torch reads its variables when it first runs such a kernel and OpenBLAS when numpy is
+imported, so a program that ran torch or imported numpy before importing sdp_cli exports them itself. Artifacts
+record the values in effect (``provenance.cpu_kernels``).
 """
 
 from __future__ import annotations
@@ -14,8 +16,10 @@ from __future__ import annotations
 import os
 from typing import MutableMapping
 
-#: the variables and the level they are capped at (oneDNN, MKL's conditional numerical reproducibility, ATen)
-PORTABLE = {"ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"}
+#: the variables and the level they are capped at (oneDNN, MKL's conditional numerical reproducibility, ATen,
+#: OpenBLAS's kernels for AVX2 + FMA CPUs)
+PORTABLE = {"ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_CBWR": "AVX2", "ATEN_CPU_CAPABILITY": "avx2",
+            "OPENBLAS_CORETYPE": "Haswell"}
 
 #: CPU flags that decide which kernels those libraries run (recorded in every timing sidecar)
 SIMD_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16")
@@ -38,10 +42,10 @@ def cpu_simd(cpuinfo: str | None = None) -> list[str]:
 
 
 def cap_cpu_kernels(environ: MutableMapping[str, str] = os.environ, simd: list[str] | None = None) -> dict[str, str]:
-    """Set each :data:`PORTABLE` variable that ``environ`` lacks, where the CPU has AVX2 (``simd``: its flags,
-    default :func:`cpu_simd`); nothing on a CPU without it (another architecture: these libraries are x86's).
-    Returns :func:`cpu_kernels` of ``environ``."""
-    if "avx2" in (cpu_simd() if simd is None else simd):
+    """Set each :data:`PORTABLE` variable that ``environ`` lacks, where the CPU has AVX2 and FMA (``simd``: its
+    flags, default :func:`cpu_simd`); nothing on a CPU without them (another architecture: the values name x86
+    kernels). Returns :func:`cpu_kernels` of ``environ``."""
+    if {"avx2", "fma"} <= set(cpu_simd() if simd is None else simd):
         for k, v in PORTABLE.items():
             environ.setdefault(k, v)
     return cpu_kernels(environ)

@@ -43,6 +43,7 @@ def test_cap_sets_what_the_user_left_unset_and_only_on_avx2():
     assert env == {**PORTABLE, "ONEDNN_MAX_CPU_ISA": "ALL"}        # the user's choice wins
     bare: dict[str, str] = {}
     assert cap_cpu_kernels(bare, simd=[]) == {} and bare == {}      # no AVX2 (another architecture): nothing
+    assert cap_cpu_kernels(bare, simd=["avx2"]) == {} and bare == {}  # AVX2 without FMA: OpenBLAS's Haswell needs it
     assert cpu_kernels({"MKL_CBWR": "AUTO", "PATH": "/bin"}) == {"MKL_CBWR": "AUTO"}
 
 
@@ -66,6 +67,25 @@ def test_importing_sdp_cli_caps_a_fresh_process_and_artifacts_record_it(tmp_path
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "a.npz")], env=env, capture_output=True,
                          text=True, check=True).stdout
     assert json.loads(out) == [PORTABLE, PORTABLE]
+
+
+def test_numpy_imported_after_sdp_cli_runs_openblas_at_the_avx2_level():
+    """A policy's rollout goes through numpy: before the cap, OpenBLAS's AVX-512 kernels moved quadrotor-0's rollout
+    costs in the ninth digit and the refined cost by 3% (docs/artifacts.md); the default must be Haswell's."""
+    if "avx512f" not in cpu_simd():
+        pytest.skip("needs a CPU with AVX-512, where OpenBLAS's own kernels differ from AVX2's")
+    code = ("import sys, hashlib\nif sys.argv[1] == 'sdp': import sdp_cli\nimport numpy as np\n"
+            "r = np.random.default_rng(0); a = r.standard_normal((64, 257)); b = r.standard_normal((257, 33))\n"
+            "print(hashlib.sha256((a @ b).tobytes() + (a @ b[:, 0]).tobytes()).hexdigest())")
+    base = {k: v for k, v in os.environ.items() if k not in PORTABLE}
+
+    def run(first, **extra):
+        return subprocess.run([sys.executable, "-c", code, first], env={**base, **extra}, capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+    default = run("sdp")
+    assert default == run("numpy", OPENBLAS_CORETYPE="Haswell")
+    assert default != run("numpy", OPENBLAS_CORETYPE="SkylakeX")
 
 
 def test_training_under_the_default_cap_computes_what_an_explicit_avx2_cap_does(tmp_path):
