@@ -4,8 +4,8 @@ __version__ = "0.1.0"
 
 from sdp_cli.kernels import cap_cpu_kernels as _cap_cpu_kernels
 
-#: torch's CPU kernels capped at AVX2 before torch runs one, unless the user chose (sdp_cli/kernels.py): the same
-#: seed then trains the same bytes on any x86 CPU with AVX2
+#: torch's and numpy's CPU kernels capped at the AVX2 level before either runs one, unless the user chose
+#: (sdp_cli/kernels.py): the same seed then gives the same numbers on x86 CPUs with and without AVX-512
 _cap_cpu_kernels()
 
 #: Version of what runs measure. A commit that changes the numbers a run produces (chunk sampling, a
