@@ -112,21 +112,29 @@ def machine() -> dict[str, Any]:
     dispatches to (capped at AVX2 by default: :mod:`sdp_cli.kernels`)."""
     import sys
 
-    out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(), "cpu_simd": cpu_simd()}
+    info = _cpuinfo()
+    out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(info),
+                           "cpu_simd": cpu_simd(info)}
     torch = sys.modules.get("torch")
     if torch is not None:
         out["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     return out
 
 
-def _cpu_model() -> str:
+@functools.lru_cache(maxsize=1)
+def _cpuinfo() -> str:
+    """/proc/cpuinfo, read once per process (empty where it cannot be read, e.g. not on Linux)."""
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
+            return f.read()
     except OSError:
-        pass
+        return ""
+
+
+def _cpu_model(cpuinfo: str) -> str:
+    for line in cpuinfo.splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine()
 
 

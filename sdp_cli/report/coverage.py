@@ -66,10 +66,10 @@ def coverage_lines(df: pd.DataFrame, name: str, root: Path = Path("."),
     if cov.empty:
         return []
     total, fin, old = int(cov.runs.sum()), int(cov.finished.sum()), int(cov.older.sum())
+    head = f"## Runs of `pipelines/{name}.yaml` in this report:"
     if fin == total and not old:
-        return ["", f"## Runs of `pipelines/{name}.yaml` in this report: all {total} finished, none of an older "
-                f"results version than {RESULTS_VERSION}"]
-    lines = ["", f"## Runs of `pipelines/{name}.yaml` in this report: {fin} of {total} finished"
+        return ["", f"{head} all {total} finished, none of an older results version than {RESULTS_VERSION}"]
+    lines = ["", f"{head} {fin} of {total} finished"
              + (f", {old} of them of an older results version than {RESULTS_VERSION}" if old else ""), "",
              "Partway: iterations evaluated of the run's n_algo (stopped or still running); not run: no evaluation "
              "yet. Figures and the ledger use what is here." + (
