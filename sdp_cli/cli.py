@@ -340,7 +340,7 @@ def check_task_cmd(
 @app.command("report")
 @clean_errors
 def report_cmd(
-    runs: Annotated[Optional[Path], typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders).")] = None,
+    runs: Annotated[Optional[Path], typer.Option(help="Folder of runs (a DVC experiment under runs/, or `sdp loop` folders; symlinked folders are followed).")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Output folder for tables (CSV, markdown) and figures (PNG), e.g. results/fig2 (required with --runs).")] = None,
     experiment: Annotated[Optional[str], typer.Option(help="Experiment name for the index (default: the runs folder's name).")] = None,
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the last iteration's mean costs and success per task and method as JSON (DVC metrics).")] = None,

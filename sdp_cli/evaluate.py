@@ -247,6 +247,28 @@ def manifest_path(csv: str | os.PathLike) -> Path:
     return p.with_name(p.stem + MANIFEST_SUFFIX)
 
 
+def files_named(root: str | os.PathLike, match) -> list[Path]:
+    """Files under ``root`` whose name satisfies ``match``, sorted. Unlike ``Path.rglob`` (Python < 3.13) it
+    follows symlinked folders, so a runs folder assembled with ``ln -s`` from several places is read whole;
+    each real folder is walked once (a link to an ancestor does not loop, a link beside its target does not
+    count a file twice)."""
+    found, seen = [], set()
+    for top, dirs, files in os.walk(root, followlinks=True):
+        real = os.path.realpath(top)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
+        dirs.sort()
+        found += [Path(top) / f for f in files if match(f)]
+    return sorted(found)
+
+
+def find_manifests(root: str | os.PathLike) -> list[Path]:
+    """Every evaluation manifest under ``root`` (:func:`files_named`: symlinked folders followed)."""
+    return files_named(root, lambda name: name.endswith(MANIFEST_SUFFIX))
+
+
 def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[dict] | None = None,
                      wall_time: float | None = None, wall_partial: bool = False) -> Path:
     """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar (with ``wall_time``, the

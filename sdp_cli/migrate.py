@@ -28,7 +28,7 @@ import pandas as pd
 from sdp_cli.argmin import policy_outcomes
 from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import (ARTIFACT_KEYS, LAYOUT, MANIFEST_SUFFIX, group_violation_rates, read_manifest,
+from sdp_cli.evaluate import (ARTIFACT_KEYS, LAYOUT, find_manifests, group_violation_rates, read_manifest,
                               terminal_cost_mean)
 
 __all__ = ["LAYOUT", "outdated", "migrate_rows", "migrate_evaluation", "migrate_runs"]
@@ -138,7 +138,7 @@ def migrate_runs(root: str | Path, log=lambda s: None) -> tuple[int, int]:
     if not root.is_dir():
         raise SdpError(f"runs folder not found: {root}")
     done = current = 0
-    for path in sorted(root.rglob("*" + MANIFEST_SUFFIX)):
+    for path in find_manifests(root):
         if migrate_evaluation(path):
             done += 1
             log(f"migrated {path.parent}")

@@ -100,6 +100,30 @@ def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
         load_runs(tmp_path / "runs")
 
 
+def test_runs_in_symlinked_folders_are_read_once_each(tmp_path):
+    """A runs folder assembled with ``ln -s`` is read whole: a linked run counts once however many links
+    reach it, a link to an ancestor does not loop, and `sdp migrate` walks the same folders."""
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli import app
+    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.report.runs import load_runs
+
+    row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 0, "n": 2, "epochs": 5,
+           "policy_cost_mean": 1.0, "success_rate": 1.0, "controls_violation_rate": 0.0, "terminal_cost_mean": 0.0}
+    runs, elsewhere = tmp_path / "runs", tmp_path / "elsewhere"
+    for d, name in ((runs / "here" / "eval", "here"), (elsewhere / "there" / "it1" / "eval", "there")):
+        d.mkdir(parents=True)
+        write_evaluation([{**row, "run": name, "iteration": 1}], d / "eval.csv", [{"rollouts": None}])
+    (runs / "there").symlink_to(elsewhere / "there", target_is_directory=True)
+    (runs / "there-again").symlink_to(elsewhere / "there", target_is_directory=True)
+    (runs / "here" / "up").symlink_to(runs, target_is_directory=True)          # a loop back to the top
+    df = load_runs(runs)
+    assert sorted(df.run) == ["here", "there"]
+    r = CliRunner().invoke(app, ["migrate", str(runs)])
+    assert r.exit_code == 0 and "2 already current" in r.output, r.output
+
+
 def test_rows_evaluated_before_policy_ties_are_recounted_from_their_refine(tmp_path):
     """Old eval.csv rows counted a shared optimum as a policy win; the report recounts them."""
     import numpy as np

@@ -2,8 +2,8 @@
 
 Evaluations are found through their manifests (``*.manifest.json``, written next to each
 ``eval.csv`` by ``sdp evaluate`` and ``sdp loop``; :mod:`sdp_cli.evaluate`), whatever the
-folder layout: a DVC experiment or ``sdp loop`` folders. Each row gets, from its manifest,
-``run``, ``iteration``, ``git_rev`` and the absolute paths of the files it comes from
+folder layout: a DVC experiment or ``sdp loop`` folders, symlinked folders followed. Each row
+gets, from its manifest, ``run``, ``iteration``, ``git_rev`` and the absolute paths of the files it comes from
 (``rollouts``, ``refined``, ``policy``, ``data``), plus ``source`` (the manifest's folder);
 the report opens only those files. An ``eval.csv`` without a manifest is not read; evaluations written by
 older code are refused in one line naming ``sdp migrate`` (:mod:`sdp_cli.migrate`), which brings them up to
@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, read_evaluation, read_manifest
+from sdp_cli.evaluate import ARTIFACT_KEYS, files_named, find_manifests, read_evaluation, read_manifest
 from sdp_cli.migrate import outdated
 
 #: columns load_runs adds that hold paths on this machine (never written to committed tables)
@@ -31,7 +31,7 @@ def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -
     if not root.is_dir():
         raise SdpError(f"runs folder not found: {root}")
     frames, old = [], []
-    for path in sorted(root.rglob("*" + MANIFEST_SUFFIX)):
+    for path in find_manifests(root):
         man = read_manifest(path)
         if outdated(man):
             old.append(path.parent)
@@ -53,7 +53,7 @@ def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -
     if old:
         raise SdpError(f"{len(old)} evaluation(s) under {root} were written by older code (e.g. {old[0]}); "
                        f"bring them up to date once with `sdp migrate {root}`")
-    unnamed = sum(1 for _ in root.rglob("eval.csv")) - len(frames)
+    unnamed = len(files_named(root, lambda name: name == "eval.csv")) - len(frames)
     if unnamed > 0:
         log(f"ignoring {unnamed} eval.csv file(s) under {root} without a manifest (written before manifests "
             "existed, or not by sdp): re-run their evaluation to include them")
