@@ -277,9 +277,9 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     cov = experiment_coverage(pd.DataFrame(rows), "x", tmp_path)
     assert cov.not_run_h.isna().all()                                 # no estimate given
     assert cov.drop(columns=["not_run_h", "older_h"]).to_dict("records") == [
-        {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1, "older": 0,
+        {"group": "ur5-rinit sdp, dp h64-ta63", "runs": 2, "finished": 1, "older": 0, "older_partway": 0,
          "partway": "1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3)", "not_run": 0},
-        {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1, "older": 0,
+        {"group": "pendulum sdp, 2000 epochs", "runs": 4, "finished": 1, "older": 0, "older_partway": 0,
          "partway": "1 (pendulum-sdp-n3-s1 1000/2000 epochs)", "not_run": 2}]
     lines = coverage_lines(pd.DataFrame(rows), "x", tmp_path)
     assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
@@ -310,6 +310,14 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     # with a saved --estimate, the hours of re-making the older runs (n1-s0 9.0 h and n3-s0 2.5 h)
     lines = coverage_lines(old, "x", tmp_path, hours=hours, hours_from="../estimates/x.txt")
     assert "| pendulum sdp, 2000 epochs | 4 | 4 (2 of an older results version, 11.5 h to re-make) | 0 | 0 |" in lines
+    # a partway run of an older results version names it (it will be re-made, not resumed), and the README
+    # says what "older" means even when no finished run is older
+    part = pd.DataFrame(rows).assign(results_version=RESULTS_VERSION)
+    part.loc[part.run == "ur5-rinit-dp-n50-s0-h64-ta63", "results_version"] = 1
+    lines = coverage_lines(part, "x", tmp_path)
+    assert "| ur5-rinit sdp, dp h64-ta63 | 2 | 1 | 1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3 of results version 1) | 0 |" in lines
+    assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
+    assert any("Older results version: evaluated by code" in ln for ln in lines)
 
 
 def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):
