@@ -318,6 +318,9 @@ def test_report_readme_says_how_much_of_the_experiment_it_holds(tmp_path):
     assert "| ur5-rinit sdp, dp h64-ta63 | 2 | 1 | 1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3 of results version 1) | 0 |" in lines
     assert "## Runs of `pipelines/x.yaml` in this report: 2 of 6 finished" in lines
     assert any("Older results version: evaluated by code" in ln for ln in lines)
+    lines = coverage_lines(part, "x", tmp_path, hours={"ur5-rinit-dp-n50-s0-h64-ta63": 5.5}, hours_from="e.txt")
+    assert ("| ur5-rinit sdp, dp h64-ta63 | 2 | 1 | 1 (ur5-rinit-dp-n50-s0-h64-ta63 2/3 of results version 1; 5.5 h to "
+            "re-make) | 0 |") in lines
 
 
 def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):
