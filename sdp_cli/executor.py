@@ -161,7 +161,13 @@ class PoolExecutor(Executor):
                 p.join(timeout=30)
                 if p.is_alive():
                     p.kill()
+            manager = getattr(self._pool, "_executor_manager_thread", None)
             self._pool.shutdown(wait=False, cancel_futures=True)
+            if manager is not None:
+                # let the pool's manager thread see its dead workers and close its wakeup pipe before the
+                # interpreter exits: else (Python 3.11) the exit hook may write to that pipe as it closes,
+                # and print "Exception ignored ... Bad file descriptor" after "Interrupted."
+                manager.join(timeout=30)
             self._pool = None
             return
         self.close()
