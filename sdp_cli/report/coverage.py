@@ -4,8 +4,9 @@ their last iteration, those partway (with ``evaluated / n_algo``) and those not 
 A report drawn while runs go on (or after some were left out for lack of time) says so in its README
 instead of letting a figure pass for the whole experiment, and a complete one says that it is; finished
 runs of an older results version than the code's (:data:`sdp_cli.RESULTS_VERSION`, the rows'
-``results_version``) are counted apart, and partway ones name their version: they are still to be re-made. Reads the experiment file only
-(:mod:`sdp_cli.experiment`), never the runs' folders: the rows given are what the report drew.
+``results_version``) are counted apart, and partway ones name their version: they are still to be
+re-made. Reads the experiment file only (:mod:`sdp_cli.experiment`), never the runs' folders: the rows
+given are what the report drew.
 """
 
 from __future__ import annotations
