@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import ARTIFACT_KEYS, files_named, find_manifests, read_evaluation, read_manifest
+from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, files_named, read_evaluation, read_manifest
 from sdp_cli.migrate import outdated
 
 #: columns load_runs adds that hold paths on this machine (never written to committed tables)
@@ -30,8 +30,9 @@ def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -
     root = Path(root)
     if not root.is_dir():
         raise SdpError(f"runs folder not found: {root}")
+    found = files_named(root, lambda name: name.endswith(MANIFEST_SUFFIX) or name == "eval.csv")   # one walk
     frames, old = [], []
-    for path in find_manifests(root):
+    for path in (p for p in found if p.name.endswith(MANIFEST_SUFFIX)):
         man = read_manifest(path)
         if outdated(man):
             old.append(path.parent)
@@ -53,7 +54,7 @@ def load_runs(root: str | Path, log=lambda s: None, allow_empty: bool = False) -
     if old:
         raise SdpError(f"{len(old)} evaluation(s) under {root} were written by older code (e.g. {old[0]}); "
                        f"bring them up to date once with `sdp migrate {root}`")
-    unnamed = len(files_named(root, lambda name: name == "eval.csv")) - len(frames)
+    unnamed = sum(p.name == "eval.csv" for p in found) - len(frames)
     if unnamed > 0:
         log(f"ignoring {unnamed} eval.csv file(s) under {root} without a manifest (written before manifests "
             "existed, or not by sdp): re-run their evaluation to include them")
