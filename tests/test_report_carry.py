@@ -72,6 +72,28 @@ def test_runs_whose_folders_are_gone_keep_their_rows(two_runs):
     assert list(pd.read_csv(out / "all_runs.csv").run) == ["c-sdp-s1"]
 
 
+def test_readme_counts_kept_runs_of_an_older_results_version_too(two_runs):
+    """A kept run of an older results version is in all_runs.csv but not drawn: the README's count of runs
+    with no run folder names it, apart, instead of counting the drawn ones only."""
+    import shutil
+
+    from sdp_cli import RESULTS_VERSION
+
+    runs, out = two_runs
+    table = pd.read_csv(out / "all_runs.csv")
+    table["results_version"] = [1 if r == "a-dp-s0" else RESULTS_VERSION for r in table.run]
+    table.to_csv(out / "all_runs.csv", index=False)
+    shutil.rmtree(runs)
+    runs.mkdir()
+    make_report(runs, out, "exp", keep_missing=True)
+    assert set(pd.read_csv(out / "all_runs.csv").run) == {"a-dp-s0", "b-sdp-s0", "c-sdp-s1"}
+    readme = (out / "README.md").read_text()
+    assert ("3 run(s) have no run folder under --runs (1 of them of an older results version, kept in "
+            "all_runs.csv but not drawn)") in readme
+    kept = readme.split("## Runs kept from the earlier report")[1].split("##")[0]
+    assert "| pendulum | sdp | 2 |" in kept and "| pendulum | dp |" not in kept    # the table: drawn runs
+
+
 def test_per_run_files_of_kept_runs_stay(two_runs):
     """Training curves are per-run files the report writes from a run's folder: a kept run's stay, a
     file of a run the report no longer has goes."""

@@ -153,7 +153,8 @@ def _write(runs: Path, out: Path, stage: Path, experiment: str | None, log,
             d, c = rows[fig.rows]
             written += fig.draw(d, task, stage, c)
     written += training_curves(shown, stage) + [p for r in sorted(kept_all) for p in sorted((out / "curves").glob(f"{r}-it*.csv"))]
-    written.append(_index(method_variants(df), runs, out, experiment, written, carried_lines(fdf, carried, kept_traj),
+    lines = carried_lines(fdf, carried, kept_traj, kept_all - kept)
+    written.append(_index(method_variants(df), runs, out, experiment, written, lines,
                           stage, hidden=hidden))
     return written, df
 
