@@ -123,17 +123,17 @@ def fresh_methods(fdf: pd.DataFrame, carried: frozenset[str]) -> frozenset[tuple
 
 
 def carried_lines(df: pd.DataFrame, carried: Carried, kept_traj: list[str],
-                  hidden: frozenset[str] = frozenset()) -> list[str]:
+                  older_runs: frozenset[str] = frozenset()) -> list[str]:
     """README lines: which runs came from the earlier report, which figures were kept from it (``kept_traj``: the
-    trajectory figures' file names). ``hidden``: carried runs not drawn (of an older results version than
+    trajectory figures' file names). ``older_runs``: carried runs not drawn (of an older results version than
     other runs of their task), counted apart; the table lists the drawn ones (``carried.runs``)."""
-    if not carried.runs and not hidden:
+    if not carried.runs and not older_runs:
         return []
     d = df[df.run.isin(carried.runs)]
-    older = (f" ({len(hidden)} of them of an older results version, kept in all_runs.csv but not drawn)"
-             if hidden else "")
+    older = (f" ({len(older_runs)} of them of an older results version, kept in all_runs.csv but not drawn)"
+             if older_runs else "")
     lines = ["", "## Runs kept from the earlier report (`--keep-missing`)", "",
-             f"{len(carried.runs) + len(hidden)} run(s) have no run folder under --runs{older}; their rows (and "
+             f"{len(carried.runs) + len(older_runs)} run(s) have no run folder under --runs{older}; their rows (and "
              "their per-run tables) are the earlier report's, unchanged.", "",
              "| task | method | runs |", "|---|---|---|"]
     for (task, method), g in d.groupby(["task", "method"]):

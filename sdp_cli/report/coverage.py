@@ -54,7 +54,7 @@ def experiment_coverage(df: pd.DataFrame, name: str, root: Path = Path("."),
         known = [hours[k] for k in todo if k in (hours or {})]
         older = [k for k in done if k in stale]
         older_known = [hours[k] for k in older if k in (hours or {})]
-        older_part = [k for k in stale if k in reached and k not in done]
+        older_part = [k for k in keys if k in stale and k in reached and k not in done]
         part_h = [hours[k] for k in older_part if k in (hours or {})]
         named += f"; {sum(part_h):.1f} h to re-make" if part_h else ""
         rows.append({"group": label, "runs": len(keys), "finished": len(done), "older": len(older),
