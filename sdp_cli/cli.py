@@ -171,13 +171,14 @@ def evaluate_cmd(
             raise SdpError(f"--tag must be KEY=VALUE, got {t!r}")
         k, v = t.split("=", 1)
         extra[k] = v
-    from sdp_cli.data.artifacts import check_writable
+    from sdp_cli.data.artifacts import artifact_writes, check_writable
 
     check_writable(out, metrics)   # both outputs, before writing either
     row = evaluation_row(rollouts, refined, extra)
-    write_evaluation([row], out, [evaluation_artifacts(rollouts, refined)])
-    if metrics is not None:
-        write_metrics(row, metrics)
+    with artifact_writes():        # both, or (a write fails) neither
+        write_evaluation([row], out, [evaluation_artifacts(rollouts, refined)])
+        if metrics is not None:
+            write_metrics(row, metrics)
     typer.echo(f"wrote {out}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                             for k, v in row.items() if k in (
                                                 "method", "policy_cost_mean", "refined_cost_mean",
@@ -302,8 +303,10 @@ def pipeline_cmd(
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
+        from sdp_cli.data.artifacts import check_folder
         from sdp_cli.runner import run_group, summary_text
 
+        check_folder(out, "runs folder")
         if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
             from sdp_cli.workers import die_with_parent
 
@@ -350,6 +353,10 @@ def report_cmd(
     """Write the paper's tables and figures from whatever runs exist, and the claims ledger."""
     if runs is None and ledger is None:
         raise SdpError("nothing to do: give --runs (a report) and/or --ledger (the claims ledger)")
+    from sdp_cli.data.artifacts import check_folder, check_writable
+
+    check_folder(out, "report folder")
+    check_writable(metrics, ledger)   # every output, before any work
     if runs is not None:
         from sdp_cli.report.make import make_report
 
@@ -365,6 +372,7 @@ def report_cmd(
 
 
 @app.command("migrate")
+@clean_errors
 def migrate_cmd(
     runs: Annotated[Path, typer.Argument(help="Folder of runs whose evaluations were written by older code.")],
 ) -> None:

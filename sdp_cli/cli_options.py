@@ -31,7 +31,8 @@ _flags_without_type()
 
 
 def clean_errors(fn: Callable) -> Callable:
-    """Turn SdpError (and Ctrl-C) into a one-line message and exit code 1."""
+    """Turn SdpError and OS errors (a full disk, a path under a file, permissions: one line naming the path)
+    into a one-line message and exit code 1, Ctrl-C into "Interrupted." and exit code 130."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -40,11 +41,21 @@ def clean_errors(fn: Callable) -> Callable:
         except SdpError as e:
             typer.echo(f"Error: {e}", err=True)
             raise typer.Exit(1) from None
+        except OSError as e:
+            typer.echo(f"Error: {os_error_text(e)}", err=True)
+            raise typer.Exit(1) from None
         except KeyboardInterrupt:
             typer.echo("Interrupted.", err=True)
             raise typer.Exit(130) from None
 
     return wrapper
+
+
+def os_error_text(e: OSError) -> str:
+    """One line for an OS error: what failed on which path (``cannot write x/y: Not a directory``)."""
+    where = " -> ".join(str(f) for f in (e.filename, e.filename2) if f is not None)
+    what = e.strerror or str(e) or type(e).__name__
+    return f"{where}: {what}" if where else what
 
 
 def task_help() -> str:

@@ -26,9 +26,10 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from sdp_cli.data.artifacts import (atomic_write_bytes, check_writable, load_npz, portable_path, save_npz,
+from sdp_cli.data.artifacts import (artifact_writes, atomic_write_bytes, check_writable, load_npz, portable_path, save_npz,
                                     split_timing)
 from sdp_cli.errors import SdpError
+from sdp_cli.rules import check_fields, rule
 from sdp_cli.executor import error_status
 from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
                                  refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
@@ -39,16 +40,16 @@ class CollectConfig:
     """Everything that determines a collection's content."""
 
     task: str
-    n_traj: int
+    n_traj: int = field(metadata=rule(ge=1))
     seed: int = 0
-    max_iter: int = 1000
-    max_attempts: int | None = None  # default: 20 * n_traj
+    max_iter: int = field(default=1000, metadata=rule(ge=1))
+    max_attempts: int | None = field(default=None, metadata=rule(ge=1))  # default: 20 * n_traj
     task_options: dict = field(default_factory=dict)
     #: Algorithm 1 lines 3-8: warm-start TO with this policy's rollout, keep ArgminCost
     policy: str | None = None
     policy_fingerprint: str | None = None
-    t_a: int | None = None
-    k_rollout: int | None = None
+    t_a: int | None = field(default=None, metadata=rule(ge=1))
+    k_rollout: int | None = field(default=None, metadata=rule(ge=1))
     #: the TO family (sdp_cli.trajopt.TO_FAMILIES): "ms" (fatrop) or "ddp" (box-FDDP, the paper's)
     to: str = "ms"
 
@@ -58,10 +59,9 @@ class CollectConfig:
 
         check_seed(self.seed)
         check_to(self.to)
-        if self.n_traj <= 0:
-            raise SdpError(f"n_traj must be > 0, got {self.n_traj}")
-        if self.max_iter <= 0:
-            raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
+        check_fields(self)
+        if self.policy is None and (self.t_a is not None or self.k_rollout is not None):
+            raise SdpError("--t-a and --k-rollout set the policy's rollouts: they need --policy")
         if self.max_attempts is not None and self.max_attempts < self.n_traj:
             raise SdpError(f"max_attempts ({self.max_attempts}) must be >= n_traj ({self.n_traj})")
 
@@ -151,23 +151,20 @@ class PartialStore:
             check_writable(out)
 
     def _create(self) -> None:
-        try:
-            self.dir.mkdir(parents=True, exist_ok=True)
-            ident = json.dumps(self.config.identity()).encode()
-            atomic_write_bytes(self.dir / "manifest.json", lambda f: f.write(ident))
-        except OSError as e:
-            raise SdpError(f"cannot write to {self.dir}: {e.strerror or e}") from None
+        ident = json.dumps(self.config.identity()).encode()
+        atomic_write_bytes(self.dir / "manifest.json", lambda f: f.write(ident))   # creates the folder
 
     def path(self, index: int) -> Path:
         return self.dir / f"{index:06d}.npz"
 
     def save(self, result: dict, elapsed: float) -> None:
         """Persist one finished solve, and ``elapsed`` (s), the collection's wall time up to it."""
-        if not (self.dir / "manifest.json").is_file():
-            self._create()
-        save_npz(self.path(int(result["index"])), result, kind="solve", config=self.config.identity())
         data = json.dumps({"wall_time": float(elapsed)}).encode()
-        atomic_write_bytes(self.dir / "elapsed.json", lambda f: f.write(data))
+        with artifact_writes():   # one solve (with the folder's manifest the first time): all of it or nothing
+            if not (self.dir / "manifest.json").is_file():
+                self._create()
+            save_npz(self.path(int(result["index"])), result, kind="solve", config=self.config.identity())
+            atomic_write_bytes(self.dir / "elapsed.json", lambda f: f.write(data))
 
     def elapsed(self) -> float:
         """Wall time (s) the earlier runs spent up to their last saved solve (0: a fresh collection)."""
@@ -285,6 +282,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     out = Path(out)
     if out.exists() and out.is_dir():
         raise SdpError(f"--out {out} is a directory; give a file path such as {out}/dataset.npz")
+    check_writable(out)   # a device, fifo or socket there is refused before any work
     task = get_task(config.task, **config.task_options)  # validates the name early
     from sdp_cli.trajopt import check_to
 

@@ -274,11 +274,17 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
     """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar (with ``wall_time``, the
     measured seconds of the whole evaluation, when given), and the manifest of ``artifacts`` (one
     :func:`evaluation_artifacts` per row) next to it."""
+    from sdp_cli.data.artifacts import artifact_writes
+
+    with artifact_writes():   # the CSV, its timing sidecar and its manifest: all three or none
+        return _write_evaluation(rows, Path(out), artifacts, wall_time, wall_partial)
+
+
+def _write_evaluation(rows, out: Path, artifacts, wall_time, wall_partial) -> Path:
     from sdp_cli.data.artifacts import code_revision
 
     df = pd.DataFrame(rows)
     timed = [c for c in df.columns if is_timing_column(c)]
-    out = Path(out)
     path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))
     save_timing(out, {"rows": df[timed].astype(float).to_dict("records"),
                       **({"wall_time": float(wall_time), "wall_partial": bool(wall_partial)}

@@ -43,6 +43,8 @@ GROUP_TYPES = {"task": "str", "methods": "[str]", "seeds": "[int]", "n_traj": "[
                "eval_t_a_last": "[int]", "k_rollout": "int?", "n_test": "int", "test_seed": "int",
                "max_iter": "int", "single_shooting": "bool", "train": "dict", "tag": "str?",
                "n_traj_schedule": "[int]?", "to": "str"}
+#: the keys whose values multiply into the group's runs (methods x seeds x n_traj)
+SWEEP_KEYS = ("methods", "seeds", "n_traj")
 _PY = {"int": int, "str": str, "bool": bool, "dict": dict, "float": (int, float)}
 
 
@@ -86,6 +88,9 @@ def check_group(name: str, gi: int, raw: dict) -> dict:
     for key, value in raw.items():
         if not type_ok(value, GROUP_TYPES[key]):
             raise SdpError(f"{where}, key {key!r}: must be {describe_type(GROUP_TYPES[key])}, got {value!r}")
+    for key in SWEEP_KEYS:   # an empty sweep is a group of no runs: a typo, not a choice
+        if key in raw and not raw[key]:
+            raise SdpError(f"{where}, key {key!r}: must list at least one value (a group of no runs), got []")
     g = {**GROUP_DEFAULTS, **raw}
     sched = g["n_traj_schedule"]
     if sched is not None:

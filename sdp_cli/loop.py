@@ -33,6 +33,7 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.rules import check_fields, rule
 from sdp_cli.policy.config import TrainConfig, flat_options
 
 
@@ -41,11 +42,11 @@ class LoopRolloutConfig:
     """How each iteration's policy is rolled out: the warm start of the next collection (``t_a``,
     ``k_rollout``) and the evaluation on the fixed test set."""
 
-    t_a: int | None = None         # T_a of the rollouts used to warm-start collection
-    eval_t_a: tuple = ()           # T_a values evaluated on the test set (default: t_a)
-    eval_t_a_last: tuple = ()      # extra T_a values evaluated at the last iteration (Table 2c)
-    k_rollout: int | None = None   # denoising steps at rollout (default K)
-    n_test: int = 50
+    t_a: int | None = field(default=None, metadata=rule(ge=1))  # T_a of the rollouts that warm-start collection
+    eval_t_a: tuple = field(default=(), metadata=rule(ge=1))   # T_a values evaluated on the test set (default: t_a)
+    eval_t_a_last: tuple = field(default=(), metadata=rule(ge=1))  # extra T_a values at the last iteration (Table 2c)
+    k_rollout: int | None = field(default=None, metadata=rule(ge=1))  # denoising steps at rollout (default K)
+    n_test: int = field(default=50, metadata=rule(ge=1))
     test_seed: int = 0
     single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
     eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
@@ -54,8 +55,7 @@ class LoopRolloutConfig:
         from sdp_cli.seeds import check_seed
 
         check_seed(self.test_seed, "test seed")
-        if self.n_test <= 0:
-            raise SdpError(f"n_test must be > 0, got {self.n_test}")
+        check_fields(self)
         for name in ("eval_t_a", "eval_t_a_last"):
             object.__setattr__(self, name, tuple(int(v) for v in getattr(self, name)))
 
@@ -68,10 +68,10 @@ class LoopConfig:
     task: str
     train: TrainConfig
     rollout: LoopRolloutConfig = field(default_factory=LoopRolloutConfig)
-    n_algo: int = 1
-    n_traj: tuple = (30,)          # per iteration; the last value repeats
+    n_algo: int = field(default=1, metadata=rule(ge=1))
+    n_traj: tuple = field(default=(30,), metadata=rule(ge=1))  # per iteration; the last value repeats
     reset_buffer: bool = True
-    max_iter: int = 1000
+    max_iter: int = field(default=1000, metadata=rule(ge=1))
     to: str = "ms"                 # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
     workers: int | None = None
     device: str = "cpu"
@@ -82,11 +82,10 @@ class LoopConfig:
         from sdp_cli.seeds import check_loop_seed
 
         object.__setattr__(self, "n_traj", tuple(int(n) for n in self.n_traj))
-        if self.n_algo <= 0:
-            raise SdpError(f"n_algo must be > 0, got {self.n_algo}")
+        check_fields(self)
         check_loop_seed(self.seed, "seed", self.n_algo)
-        if not self.n_traj or min(self.n_traj) <= 0:
-            raise SdpError(f"n_traj must be positive, got {list(self.n_traj)}")
+        if not self.n_traj:
+            raise SdpError("n_traj must be positive integers, got []")
         from sdp_cli.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)

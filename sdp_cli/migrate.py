@@ -136,7 +136,7 @@ def migrate_runs(root: str | Path, log=lambda s: None) -> tuple[int, int]:
     """Migrate every evaluation under ``root``; ``(migrated, already current)``."""
     root = Path(root)
     if not root.is_dir():
-        raise SdpError(f"runs folder not found: {root}")
+        raise SdpError(f"runs folder not found: {root}" + (" (it is a file)" if root.exists() else ""))
     done = current = 0
     for path in find_manifests(root):
         if migrate_evaluation(path):

@@ -114,8 +114,11 @@ def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: 
     returns ``{"runs": n}``. The experiment's settings are DVC parameters of ``pipelines/NAME.yaml`` itself
     (``dvc.yaml``'s stage ``group``): ``dvc exp run -S 'pipelines/NAME.yaml:groups.GROUP.epochs=100'``,
     ``dvc params diff``, ``dvc exp show``."""
+    from sdp_cli.data.artifacts import check_writable
+
     spec = load_experiment(name, root)
     n = len(loop_configs(name, spec))
+    check_writable(params_path)   # a regular file or none (a fifo would block the read below)
     params = {}
     if params_path.exists():
         params = yaml.safe_load(params_path.read_text()) or {}

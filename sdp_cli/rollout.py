@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -28,6 +28,7 @@ import torch
 
 from sdp_cli.data.artifacts import portable_path, save_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.rules import check_fields, rule
 from sdp_cli.seeds import TEST_SEED_BASE, check_seed  # noqa: F401 (TEST_SEED_BASE re-exported)
 from sdp_cli.tasks import Task
 
@@ -41,17 +42,16 @@ DIVERGENCE_STATE = 1e4
 
 @dataclass(frozen=True)
 class RolloutConfig:
-    n: int = 50
+    n: int = field(default=50, metadata=rule(ge=1))
     seed: int = 0
-    t_a: int | None = None  # default T_h - T_o
-    k_rollout: int | None = None  # default K
+    t_a: int | None = field(default=None, metadata=rule(ge=1))  # default T_h - T_o
+    k_rollout: int | None = field(default=None, metadata=rule(ge=1))  # default K
 
     def __post_init__(self):
         check_seed(self.seed, "test seed")
+        check_fields(self)
 
     def validate(self, policy) -> "RolloutConfig":
-        if self.n <= 0:
-            raise SdpError(f"n must be > 0, got {self.n}")
         if policy.is_diffusion:
             t_a = self.t_a if self.t_a is not None else policy.T_h - policy.T_o
             if not 1 <= t_a <= policy.T_h - policy.T_o:

@@ -177,6 +177,12 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     executor, workers, scheduler = executor_options(executor, workers, scheduler)
     check_executor_options(executor, workers, scheduler)
     runs = loop_configs(name, load_experiment(name, root))
+    if only:   # every refusal that needs no run folder comes before the lock (which would stay behind)
+        unknown = sorted(set(only) - set(runs))
+        if unknown:
+            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+    if stack is not None and stack <= 0:
+        raise SdpError(f"--stack must be >= 1, got {stack}")
     with runner_lock(Path(out)):
         return _run_group(name, runs, Path(out), executor, workers, scheduler, device, only, restart_changed, log, job,
                           stack)
@@ -197,22 +203,37 @@ def runner_lock(out: Path):
     import fcntl
 
     path = lock_path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    f = open(path, "a+")
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        f.seek(0)
-        owner = f.read().strip() or "unknown"
+    from sdp_cli.data.artifacts import ensure_dir
+
+    ensure_dir(path.parent, "runs' parent folder")
+    while True:
+        created = not path.exists()
+        f = open(path, "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            owner = f.read().strip() or "unknown"
+            f.close()
+            raise SdpError(f"{out} is being run by another `sdp pipeline --run` (pid {owner}); wait for it to "
+                           f"finish or stop it (its lock: {path})") from None
+        try:   # locked; but a runner that refused may have removed this file since we opened it: lock the new one
+            same = os.stat(path).st_ino == os.fstat(f.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
         f.close()
-        raise SdpError(f"{out} is being run by another `sdp pipeline --run` (pid {owner}); wait for it to finish "
-                       f"or stop it (its lock: {path})") from None
     try:
         f.seek(0)
         f.truncate()
         f.write(str(os.getpid()))
         f.flush()
         yield
+    except SdpError:
+        if created:   # refused (settings of a run folder, ...): leave no lock file that this call made
+            path.unlink(missing_ok=True)
+        raise
     finally:
         fcntl.flock(f, fcntl.LOCK_UN)
         f.close()
@@ -223,10 +244,7 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
     from sdp_cli.loop import check_resume
     from sdp_cli.progress import count_progress
 
-    if only:
-        unknown = sorted(set(only) - set(runs))
-        if unknown:
-            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+    if only:   # names checked by run_group
         runs = {k: v for k, v in runs.items() if k in only}
     out = Path(out)
     for key, cfg in runs.items():   # a folder holding other settings: refused (or restarted) before any work
@@ -242,8 +260,6 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
 
     from sdp_cli.train_stack import DEFAULT_STACK
 
-    if stack is not None and stack <= 0:
-        raise SdpError(f"--stack must be >= 1, got {stack}")
     jobs = pack(runs, DEFAULT_STACK if stack is None else stack)
     argsets = [([runs[k].to_dict() for k in job_keys], [str(out / k) for k in job_keys], device) for job_keys in jobs]
     tables, failed = [], []

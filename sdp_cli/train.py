@@ -28,7 +28,7 @@ import torch
 
 from sdp_cli.data.chunks import fit_normalizer, load_dataset, task_options_of
 from sdp_cli.errors import SdpError
-from sdp_cli.data.artifacts import ensure_dir, load_timing, portable_path, save_timing
+from sdp_cli.data.artifacts import artifact_writes, ensure_dir, load_timing, portable_path, save_timing
 from sdp_cli.data.metrics_log import MetricsLog
 from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import CHECKPOINT_NAME, file_sha256, load_checkpoint, save_checkpoint
@@ -115,6 +115,8 @@ def reconcile_config(cfg: TrainConfig, ck_path: Path, resume: bool, init) -> tup
     if out.exists() and not out.is_dir():
         raise SdpError(f"--out {out} exists and is not a folder")
     prev = None
+    if resume and not ck_path.exists():
+        raise SdpError(f"--resume: {out} holds no run to resume (no {ck_path.name}); drop --resume to start one")
     if ck_path.exists():
         if not resume:
             raise SdpError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
@@ -257,11 +259,15 @@ class Run:
                                       "ema": ema.state_dict(), "generator": self.gen.get_state()}
         # the metrics first: a kill between the two writes leaves metrics.csv ahead of the checkpoint (--resume
         # drops the rows past its step), never behind it (rows lost for good)
+        with artifact_writes():   # metrics, checkpoint and timing: all three or (a full disk) none
+            self._write(path, payload, with_state)
+
+    def _write(self, path: Path | None, payload: dict, with_state: bool) -> None:
         self.metrics.rewrite()
         save_checkpoint(path or self.ck_path, payload)
         if with_state:
             save_timing(self.out, {"wall_time": self.wall0 + (time.perf_counter() - self.t0), "step": self.step,
-                                   "device": str(self.device)})
+                                   "device": str(self.device)}, artifact=path or self.ck_path)
 
     def describe(self) -> str:
         cfg, B = self.cfg, self.cfg.data.batch_size
@@ -272,7 +278,10 @@ class Run:
                 f"{n_params} parameters; device {self.device}" +
                 (f"; alpha_Sobolev {cfg.sobolev.alpha:g} x balance {self.policy.sobolev_scale:.3g}"
                  if cfg.uses_sobolev else "") +
-                (f"; resuming at step {self.step}" if self.resumed else ""))
+                (f"; resuming at step {self.step}" if self.resumed else "") +
+                ("; --init's architecture replaces " + ", ".join(f"{k} {a!r} by {b!r}" for k, (a, b) in
+                                                                  self.overridden.items())
+                 if getattr(self, "overridden", None) else ""))
 
 
 def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
@@ -282,7 +291,11 @@ def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str =
     dev = resolve_device(device)
     out = Path(out)
     ck_path = out / CHECKPOINT_NAME
+    asked = cfg.architecture()
     cfg, prev, init_ck = reconcile_config(cfg, ck_path, resume, init)
+    # --init imposes its architecture: say which asked-for settings it replaced (describe())
+    overridden = {k: (v, cfg.architecture()[k]) for k, v in asked.items()
+                  if init_ck is not None and cfg.architecture()[k] != v}
     arrays, meta, task, fingerprint = _load_data(data, cfg, prev, init_ck, ck_path)
     cfg = resolved_alpha(cfg, task)
     torch.manual_seed(cfg.seed)
@@ -314,6 +327,7 @@ def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str =
     return Run(cfg=cfg, out=out, ck_path=ck_path, device=dev, policy=policy, tensors=tensors, E=E,
                n_samples=n_samples, n_traj=len(arrays["X"]), steps_per_epoch=steps_per_epoch, total=total, opt=opt,
                sched=sched, ema=ema, gen=gen, step=step, wall0=wall0, resumed=prev is not None, created=created,
+               overridden=overridden,
                base=base, metrics=MetricsLog(out / "metrics.csv", rows, resumed=prev is not None))
 
 

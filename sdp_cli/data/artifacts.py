@@ -12,16 +12,25 @@ wall times) and when the file was written go to a sidecar ``<stem>.timing.json``
 (:func:`save_timing` / :func:`load_timing`), which is not a DVC output.
 
 Writes are atomic (temporary file in the same folder, fsync, ``os.replace``), so a
-killed process never leaves a half-written artifact.
+killed process never leaves a half-written artifact; only regular files are written (an existing device,
+fifo, socket or folder at an output path is refused, never replaced). An artifact made of several files
+(the ``.npz`` and its sidecar; a checkpoint with its metrics and timing) is written inside
+:func:`artifact_writes`: if any of its writes fails (a full disk, a read-only file system) or the process is
+interrupted between them, the files it already wrote are removed and those it replaced are restored, so the
+folder holds the artifact as it was before, never a part of the new one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import datetime as _dt
+import errno
 import functools
 import json
 import os
 import platform
+import stat
 import subprocess
 import tempfile
 import zipfile
@@ -201,17 +210,62 @@ def ensure_dir(path: str | os.PathLike, what: str) -> Path:
 
 
 def check_writable(*paths: str | os.PathLike | None) -> None:
-    """``SdpError`` unless every output path's folder can be created and written (before any work)."""
+    """``SdpError`` unless every output path's folder can be created and written, and the path is free or a
+    regular file (before any work: a device, fifo, socket or folder there is refused)."""
     for p in paths:
         if p is None:
             continue
+        check_regular(p)
         parent = Path(p).parent
+        if not parent.is_dir():   # created with the first write (nothing is left behind by a refused run)
+            _check_creatable(p, parent)
+            continue
+        if not os.access(parent, os.W_OK):
+            raise SdpError(f"cannot write {p}: permission denied")
+
+
+def check_folder(path: str | os.PathLike | None, what: str) -> None:
+    """``SdpError`` unless the output folder ``path`` (``what``: e.g. "report folder") exists as a folder or
+    can be created (before any work; nothing is created)."""
+    if path is None:
+        return
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise SdpError(f"cannot write the {what} {path}: it exists and is not a folder")
+    if not path.exists():
         try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise SdpError(f"cannot write {p}: {e.strerror or e}") from None
-        if not os.access(parent, os.W_OK) or Path(p).is_dir():
-            raise SdpError(f"cannot write {p}: {'it is a folder' if Path(p).is_dir() else 'permission denied'}")
+            _check_creatable(path / "_", path)
+        except SdpError as e:
+            raise SdpError(f"cannot create the {what} {path}: " + str(e).split(": ", 1)[1]) from None
+
+
+def _check_creatable(p, parent: Path) -> None:
+    """The nearest existing ancestor of ``parent`` is a writable folder (a file there: refused)."""
+    anc = parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise SdpError(f"cannot write {p}: {anc} is not a folder")
+    if not os.access(anc, os.W_OK):
+        raise SdpError(f"cannot write {p}: permission denied")
+
+
+def check_regular(path: str | os.PathLike) -> None:
+    """``SdpError`` if ``path`` exists and is not a regular file (a folder, device, fifo or socket): outputs
+    replace only regular files."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        if e.errno in (errno.ENOTDIR, errno.ENAMETOOLONG):
+            raise SdpError(f"cannot write {path}: {e.strerror}") from None
+        raise SdpError(f"cannot write {path}: {e.strerror or e}") from None
+    if stat.S_ISDIR(mode):
+        raise SdpError(f"cannot write {path}: it is a folder")
+    if not stat.S_ISREG(mode):
+        raise SdpError(f"cannot write {path}: it exists and is not a regular file (a device, fifo or socket); "
+                       "sdp writes only regular files")
 
 
 def _umask() -> int:
@@ -220,11 +274,87 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
-    """Call ``writer(fileobj)`` on a temp file next to ``path``, then rename it into place."""
-    path = Path(path)
+#: the writes of the artifact being written (:func:`artifact_writes`), or None outside one
+_WRITES: contextvars.ContextVar[list | None] = contextvars.ContextVar("sdp_artifact_writes", default=None)
+
+
+@contextlib.contextmanager
+def artifact_writes():
+    """The files written inside form one artifact: if the block raises (an OS error such as a full disk,
+    an ``SdpError``, Ctrl-C), the files :func:`atomic_write_bytes` created in it are removed, those it
+    replaced get their earlier bytes back (a hard link kept until the block ends) and the folders it created
+    are removed again. Nested blocks belong to the outermost one."""
+    if _WRITES.get() is not None:
+        yield
+        return
+    log: list[tuple[str, Path, Path | None]] = []
+    token = _WRITES.set(log)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        yield
+    except BaseException:
+        _WRITES.reset(token)
+        _undo(log)
+        raise
+    _WRITES.reset(token)
+    for kind, _, backup in log:
+        if kind == "file" and backup is not None:
+            backup.unlink(missing_ok=True)
+
+
+def _undo(log: list) -> None:
+    for kind, path, backup in reversed(log):
+        try:
+            if kind == "dir":
+                path.rmdir()          # only if empty: never what another process put there
+            elif backup is not None:
+                os.replace(backup, path)
+            else:
+                path.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
+def _record(kind: str, path: Path, backup: Path | None = None) -> None:
+    log = _WRITES.get()
+    if log is not None and not any(k == kind and p == path for k, p, _ in log):
+        log.append((kind, path, backup))
+
+
+def _missing_parents(folder: Path) -> list[Path]:
+    """The folders ``folder.mkdir(parents=True)`` would create, outermost first."""
+    out = []
+    while not folder.exists() and folder != folder.parent:
+        out.append(folder)
+        folder = folder.parent
+    return out[::-1]
+
+
+def _backup(path: Path) -> Path | None:
+    """A hard link to the file ``path`` replaces (inside :func:`artifact_writes`, the first time), else None."""
+    log = _WRITES.get()
+    if log is None or not path.is_file() or any(k == "file" and p == path for k, p, _ in log):
+        return None
+    backup = path.with_name(f".{path.name}.{os.getpid()}.bak")
+    backup.unlink(missing_ok=True)
+    try:
+        os.link(path, backup)
+    except OSError:        # no hard links here: a copy
+        import shutil
+
+        shutil.copy2(path, backup)
+    return backup
+
+
+def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
+    """Call ``writer(fileobj)`` on a temp file next to ``path``, then rename it into place. Refuses a path that
+    is not a regular file (:func:`check_regular`); an OS error (full disk, read-only file system, permission)
+    is one ``SdpError`` naming ``path``, with the temp file removed."""
+    path = Path(path)
+    check_regular(path)
+    try:
+        for d in _missing_parents(path.parent):
+            d.mkdir()
+            _record("dir", d)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as e:
         raise SdpError(f"cannot write {path}: {e.strerror or e}") from None
@@ -234,7 +364,17 @@ def atomic_write_bytes(path: str | os.PathLike, writer) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; artifacts get the usual permissions
-        os.replace(tmp, path)
+        backup = _backup(path)
+        try:
+            os.replace(tmp, path)
+        except BaseException:
+            if backup is not None:
+                backup.unlink(missing_ok=True)
+            raise
+        _record("file", path, backup)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise SdpError(f"cannot write {path}: {e.strerror or e}") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -250,8 +390,9 @@ def save_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], kind: str,
             "provenance": runtime_provenance(), "config": config or {}, **extra_meta}
     payload = {k: np.asarray(v) for k, v in arrays.items()}
     payload["__meta__"] = np.array(json.dumps(meta, default=json_default))
-    out = atomic_write_bytes(path, lambda f: _write_npz(f, payload))
-    save_timing(path, timing or {})     # clock readings and the machine (outside the hashed bytes)
+    with artifact_writes():             # the .npz and its sidecar: both or neither
+        out = atomic_write_bytes(path, lambda f: _write_npz(f, payload))
+        save_timing(path, timing or {})   # clock readings and the machine (outside the hashed bytes)
     return out
 
 
@@ -277,22 +418,56 @@ def timing_path(path: str | os.PathLike) -> Path:
     return p.with_name((p.stem if p.suffix else p.name) + ".timing.json")
 
 
-def save_timing(path: str | os.PathLike, timing: dict[str, Any]) -> Path:
-    """Write the timing sidecar of ``path`` (adds ``created``, the UTC time of writing)."""
+def save_timing(path: str | os.PathLike, timing: dict[str, Any], artifact: str | os.PathLike | None = None) -> Path:
+    """Write the timing sidecar of ``path`` (adds ``created``, the UTC time of writing, the machine, and the
+    ``stamp``: the name and SHA-256 of the file it describes, ``artifact`` or ``path`` itself; a folder such
+    as a training run's names its checkpoint). :func:`load_timing` ignores a sidecar whose stamp does not
+    match: after ``git checkout`` + ``dvc checkout`` restores another run's artifacts, their timing files
+    (not DVC outputs) still describe the run made here."""
+    described = Path(artifact) if artifact is not None else Path(path)
     rec = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
            **timing}
+    if described.is_file():
+        rec["stamp"] = {"file": portable_path(described, timing_path(path).parent),
+                        "sha256": file_sha256(described)}
     data = json.dumps(rec, default=json_default, indent=1).encode()
     return atomic_write_bytes(timing_path(path), lambda f: f.write(data))
 
 
+#: timing sidecars :func:`load_timing` ignored because their artifact changed since (the report says so)
+IGNORED_TIMINGS: set[str] = set()
+
+
 def load_timing(path: str | os.PathLike) -> dict[str, Any]:
-    """The timing sidecar of ``path``; empty when it is missing or unreadable (timings are
-    informative, never needed to load the artifact itself)."""
+    """The timing sidecar of ``path``; empty when it is missing, unreadable, or stamped with another
+    artifact's SHA-256 than the file now there (recorded in :data:`IGNORED_TIMINGS`). Timings are
+    informative, never needed to load the artifact itself; sidecars written before the stamp are read as
+    they are."""
+    tp = timing_path(path)
     try:
-        rec = json.loads(timing_path(path).read_text())
+        rec = json.loads(tp.read_text())
     except (OSError, ValueError):
         return {}
-    return rec if isinstance(rec, dict) else {}
+    if not isinstance(rec, dict):
+        return {}
+    stamp = rec.get("stamp")
+    if stamp is not None:
+        ok = isinstance(stamp, dict) and isinstance(stamp.get("file"), str)
+        described = tp.parent / stamp["file"] if ok else None
+        if not ok or not described.is_file() or _sha256_cached(described) != stamp.get("sha256"):
+            IGNORED_TIMINGS.add(str(tp))
+            return {}
+    return rec
+
+
+def _sha256_cached(path: Path) -> str:
+    st = path.stat()
+    return _sha256_of(str(path.resolve()), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4096)
+def _sha256_of(path: str, size: int, mtime_ns: int) -> str:
+    return file_sha256(path)
 
 
 def load_npz(path: str | os.PathLike, kind: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -328,6 +503,18 @@ def load_meta(path: str | os.PathLike, kind: str | None = None) -> dict[str, Any
     return _check_meta(path, raw, kind)
 
 
+#: the type of every metadata field sdp writes (:func:`save_npz` and its callers); a field of another type
+#: makes the artifact corrupt (one line), never a ``TypeError`` deep in the code that reads it (each is checked
+#: where present).
+META_TYPES: dict[str, tuple[type, ...]] = {
+    "kind": (str,), "format_version": (int,), "provenance": (dict,), "config": (dict,), "task": (str,),
+    "task_options": (dict,), "task_params": (dict,), "dims": (dict,), "stats": (dict,), "source": (str,),
+    "device": (str,), "method": (str,), "policy_config": (dict,), "policy_epoch": (int, type(None)),
+    "policy_dataset": (dict, type(None)),
+}
+_TYPE_WORDS = {str: "a string", int: "an integer", dict: "a JSON object", type(None): "null"}
+
+
 def _check_meta(path: Path, raw, kind: str | None) -> dict[str, Any]:
     try:
         meta = json.loads(str(raw))
@@ -335,6 +522,11 @@ def _check_meta(path: Path, raw, kind: str | None) -> dict[str, Any]:
         raise SdpError(f"corrupt artifact {path}: bad metadata ({e})") from None
     if not isinstance(meta, dict):
         raise SdpError(f"corrupt artifact {path}: its metadata is not a JSON object")
+    for key, types in META_TYPES.items():
+        v = meta.get(key)
+        if key in meta and (not isinstance(v, types) or (isinstance(v, bool) and bool not in types)):
+            raise SdpError(f"corrupt artifact {path}: metadata field {key!r} must be "
+                           f"{' or '.join(_TYPE_WORDS[t] for t in types)}, got {v!r}"[:300])
     if kind is not None and meta.get("kind") != kind:
         raise SdpError(f"{path} is a {meta.get('kind')!r} artifact, expected {kind!r}")
     if meta.get("format_version", 0) > FORMAT_VERSION:

@@ -80,7 +80,25 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         raise SdpError(f"{p} is not an sdp policy checkpoint")
     if ck.get("format_version", 0) > FORMAT_VERSION:
         raise SdpError(f"{p} has format_version {ck['format_version']}, newer than this sdp; upgrade sdp")
+    check_finite(ck, p)
     return migrate(ck)
+
+
+def check_finite(ck: dict, path) -> None:
+    """``SdpError`` if the checkpoint's weights or EMA weights hold NaN or infinity: such a policy cannot act,
+    and its rollouts would be reported as a result (every one diverged)."""
+    for key in ("model", "ema_model"):
+        sd = ck.get(key)
+        if not isinstance(sd, dict):
+            continue
+        bad = total = 0
+        for v in sd.values():
+            if isinstance(v, torch.Tensor) and v.is_floating_point():
+                bad += int((~torch.isfinite(v)).sum())
+                total += v.numel()
+        if bad:
+            raise SdpError(f"{path}: {bad} of {total} {'EMA ' if key == 'ema_model' else ''}weights are not "
+                           f"finite (NaN or infinity); this checkpoint cannot act")
 
 
 def migrate(ck: dict) -> dict:

@@ -23,21 +23,23 @@ Checkpoints and loop folders written before the sections existed store one flat 
 
 from __future__ import annotations
 
-import math
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, get_type_hints
 
 from sdp_cli.errors import SdpError
+from sdp_cli.rules import check_fields, rule
 
 SOBOLEV_MODES = ("jvp", "vjp")
 SOBOLEV_PATHS = ("cond", "total")
 
 
-def opt(default=MISSING, help: str = "", factory=MISSING):
-    """A config field that is a training option (its ``help`` is the flag's)."""
+def opt(default=MISSING, help: str = "", factory=MISSING, **bounds):
+    """A config field that is a training option (its ``help`` is the flag's); ``bounds`` (``ge=1``, ``gt=0``,
+    ``le=1``, ``lt=1``, ``odd=True``) its range (:mod:`sdp_cli.rules`: finite, and each item of a list)."""
+    meta = {"help": help, **(rule(**bounds) if bounds else {})}
     if factory is not MISSING:
-        return field(default_factory=factory, metadata={"help": help})
-    return field(default=default, metadata={"help": help})
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
 
 
 @dataclass
@@ -46,16 +48,16 @@ class PolicyConfig:
 
     method: str = opt("sdp", "Method (a registered policy family).")
     action: str | None = opt(None, "Action variable u, x, q or v (default: the task's).")
-    horizon: int = opt(32, "Chunk length T_h (diffusion methods).")
-    n_obs_steps: int = opt(1, "Observed steps T_o (diffusion methods).")
-    diffusion_steps: int = opt(5, "DDPM steps K (training; rollouts may use fewer).")
-    down_dims: list[int] = opt(help="U-Net channels per level, comma-separated.", factory=lambda: [24, 24, 32, 32])
-    kernel_size: int = opt(5, "U-Net convolution kernel size.")
-    n_groups: int = opt(8, "GroupNorm groups of the U-Net.")
-    step_embed_dim: int = opt(64, "Diffusion-step embedding size.")
+    horizon: int = opt(32, "Chunk length T_h (diffusion methods).", ge=1)
+    n_obs_steps: int = opt(1, "Observed steps T_o (diffusion methods).", ge=1)
+    diffusion_steps: int = opt(5, "DDPM steps K (training; rollouts may use fewer).", ge=1)
+    down_dims: list[int] = opt(help="U-Net channels per level, comma-separated.", factory=lambda: [24, 24, 32, 32], ge=1)
+    kernel_size: int = opt(5, "U-Net convolution kernel size (odd: the chunk keeps its length).", ge=1, odd=True)
+    n_groups: int = opt(8, "GroupNorm groups of the U-Net.", ge=1)
+    step_embed_dim: int = opt(64, "Diffusion-step embedding size.", ge=2)
     clip_sample: bool = opt(True, "Clip denoised chunks to [-1, 1] (normalized units).")
     mlp_hidden: list[int] = opt(help="Hidden layer sizes of the MLP baselines, comma-separated.",
-                                factory=lambda: [256, 256, 256])
+                                factory=lambda: [256, 256, 256], ge=1)
 
 
 @dataclass
@@ -63,21 +65,21 @@ class DataConfig:
     """How much of the dataset a run sees (Sec. IV's epochs; :mod:`sdp_cli.data.sampling`)."""
 
     epochs: int = opt(1000, "Epochs (per iteration of `sdp loop`): |D|(T-T_h)/T_h chunks (diffusion) or |D|T "
-                                   "pairs (MLP) each.")
-    batch_size: int = opt(256, "Batch size B.")
+                                   "pairs (MLP) each.", ge=1)
+    batch_size: int = opt(256, "Batch size B.", ge=1)
 
 
 @dataclass
 class OptimConfig:
     """AdamW, cosine learning rate with linear warm-up, clipping and EMA (diffusion policy's defaults)."""
 
-    lr: float = opt(1e-3, "Peak AdamW learning rate (cosine schedule with warm-up).")
-    weight_decay: float = opt(1e-6, "AdamW weight decay.")
-    betas: list[float] = opt(help="AdamW betas, comma-separated.", factory=lambda: [0.95, 0.999])
-    warmup_steps: int | None = opt(None, "Linear LR warm-up steps (default: min(500, total steps / 10)).")
-    grad_clip: float = opt(1.0, "Gradient-norm clip.")
-    ema_power: float = opt(0.75, "EMA warm-up power.")
-    ema_max_decay: float = opt(0.9999, "EMA maximum decay.")
+    lr: float = opt(1e-3, "Peak AdamW learning rate (cosine schedule with warm-up).", gt=0)
+    weight_decay: float = opt(1e-6, "AdamW weight decay.", ge=0)
+    betas: list[float] = opt(help="AdamW betas, comma-separated.", factory=lambda: [0.95, 0.999], ge=0, lt=1)
+    warmup_steps: int | None = opt(None, "Linear LR warm-up steps (default: min(500, total steps / 10)).", ge=0)
+    grad_clip: float = opt(1.0, "Gradient-norm clip.", gt=0)
+    ema_power: float = opt(0.75, "EMA warm-up power.", gt=0)
+    ema_max_decay: float = opt(0.9999, "EMA maximum decay.", gt=0, le=1)
 
 
 @dataclass
@@ -85,17 +87,17 @@ class SobolevConfig:
     """The Sobolev term (Sec. III): its weight, balance and how the Jacobian is matched."""
 
     alpha: float | None = opt(None, "Weight alpha_Sobolev of the Sobolev term (default: the task's, the paper's "
-                                    "values: 1, quadrotor 1e-3).")
+                                    "values: 1, quadrotor 1e-3).", ge=0)
     balance: bool = opt(True, "Scale the Sobolev term so that alpha 1 weighs it equally with the regression term "
                               "on the dataset (docs/training.md).")
     path: str = opt("cond", "sdp: cond = differentiate through (o_hist, a_hist) only; total = also through the "
                             "noisy chunk tau_k.")
-    n_proj: int = opt(1, "Random projections per sample.")
+    n_proj: int = opt(1, "Random projections per sample.", ge=1)
     mode: str = opt("jvp", "jvp: project on the state side (forward mode); vjp: eq. (6), project on the output side.")
     fraction: float = opt(1.0, "jvp mode: share of each batch that gets the Sobolev term (1 = all; 0.5 costs "
-                               "~1.5x a DP step instead of ~1.9x).")
+                               "~1.5x a DP step instead of ~1.9x).", gt=0, le=1)
     cap: float | None = opt(None, "sdp: down-weight the Sobolev error of chunks whose target-Jacobian norm "
-                                  "exceeds this quantile of the dataset's (e.g. 0.9); off by default.")
+                                  "exceeds this quantile of the dataset's (e.g. 0.9); off by default.", gt=0, le=1)
 
     @property
     def weight(self) -> float:
@@ -119,8 +121,8 @@ class TrainConfig:
                         "1000 * seed + k).")
     save_at: list[int] = opt(help="Epochs at which to keep a checkpoint too, comma-separated, e.g. 1000 (`sdp loop` "
                                   "evaluates them too: Fig. 1).",
-                             factory=list)
-    checkpoint_every_s: float = opt(60.0, "Seconds between checkpoints of the run (and at the end, on Ctrl-C).")
+                             factory=list, ge=1)
+    checkpoint_every_s: float = opt(60.0, "Seconds between checkpoints of the run (and at the end, on Ctrl-C).", ge=0)
 
     def __post_init__(self):
         self.policy.down_dims = [int(d) for d in self.policy.down_dims]
@@ -252,18 +254,6 @@ def option_type(name: str) -> tuple[type, type | None, bool]:
     return base, None, optional
 
 
-def _positive(cfg: TrainConfig, *names: str) -> None:
-    for name in names:
-        s, f = options()[name]
-        v = getattr(getattr(cfg, s) if s else cfg, f)
-        if v <= 0:
-            raise SdpError(f"{name} must be > 0, got {v}")
-
-
-def _finite_positive(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 and math.isfinite(v)
-
-
 def check(cfg: TrainConfig) -> None:
     """Every rule a config obeys (one :class:`SdpError` naming the option)."""
     from sdp_cli.policy.registry import get_method
@@ -272,26 +262,15 @@ def check(cfg: TrainConfig) -> None:
     p, o, s = cfg.policy, cfg.optim, cfg.sobolev
     get_method(p.method)   # a registered method (sdp_cli.policy.registry), else one clear error
     check_seed(cfg.seed)
-    if s.mode not in SOBOLEV_MODES:
-        raise SdpError(f"sobolev_mode must be one of {', '.join(SOBOLEV_MODES)}; got {s.mode!r}")
-    _positive(cfg, "epochs", "batch_size", "diffusion_steps", "sobolev_n_proj", "horizon", "n_obs_steps")
-    if not 0 <= cfg.checkpoint_every_s < float("inf"):
-        raise SdpError(f"checkpoint_every_s must be >= 0, got {cfg.checkpoint_every_s}")
-    for name in ("lr", "grad_clip", "ema_max_decay"):
-        if not _finite_positive(getattr(o, name)):
-            raise SdpError(f"{name} must be a finite number > 0, got {getattr(o, name)}")
-    if not 0 <= o.weight_decay < float("inf"):
-        raise SdpError(f"weight_decay must be >= 0, got {o.weight_decay}")
-    if not o.ema_max_decay <= 1:
-        raise SdpError(f"ema_max_decay must be in (0, 1], got {o.ema_max_decay}")
-    if not (len(o.betas) == 2 and all(0 <= b < 1 for b in o.betas)):
-        raise SdpError(f"betas must be two numbers in [0, 1), got {list(o.betas)}")
-    if o.warmup_steps is not None and o.warmup_steps < 0:
-        raise SdpError(f"warmup_steps must be >= 0, got {o.warmup_steps}")
     if any(not 0 < int(e) < cfg.data.epochs for e in cfg.save_at):
         raise SdpError(f"save_at epochs must be in (0, epochs = {cfg.data.epochs}), got {list(cfg.save_at)}")
-    if not 0 < s.fraction <= 1:
-        raise SdpError(f"sobolev_fraction must be in (0, 1], got {s.fraction}")
+    for section in SECTIONS:   # each option's own range, declared on its field (finite, in range)
+        check_fields(getattr(cfg, section), prefix=f"{section}_" if section in PREFIXED else "")
+    check_fields(cfg)
+    if s.mode not in SOBOLEV_MODES:
+        raise SdpError(f"sobolev_mode must be one of {', '.join(SOBOLEV_MODES)}; got {s.mode!r}")
+    if len(o.betas) != 2:
+        raise SdpError(f"betas must be two numbers in [0, 1), got {list(o.betas)}")
     if s.fraction < 1 and s.mode != "jvp":
         raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
     if s.path not in SOBOLEV_PATHS:
@@ -299,15 +278,11 @@ def check(cfg: TrainConfig) -> None:
     sobolev_diffusion = cfg.is_diffusion and cfg.uses_sobolev
     if s.path == "total" and not sobolev_diffusion:
         raise SdpError(f"sobolev_path 'total' applies to Sobolev diffusion methods (sdp), not {p.method!r}")
-    if s.alpha is not None and not 0 <= s.alpha < float("inf"):
-        raise SdpError(f"sobolev_alpha must be >= 0, got {s.alpha}")
     if s.cap is not None:
-        if not 0 < s.cap <= 1:
-            raise SdpError(f"sobolev_cap is a quantile in (0, 1], got {s.cap}")
         if not sobolev_diffusion:
             raise SdpError(f"sobolev_cap applies to Sobolev diffusion methods (sdp), not {p.method!r}")
     for name in ("down_dims", "mlp_hidden"):
-        if not getattr(p, name) or min(getattr(p, name)) <= 0:
+        if not getattr(p, name):
             raise SdpError(f"{name} must be positive integers, got {getattr(p, name)}")
     if cfg.is_diffusion:
         levels = len(p.down_dims)
