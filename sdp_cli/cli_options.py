@@ -70,7 +70,7 @@ ThreadsOpt = Annotated[int, typer.Option(
 
 
 ProgressOpt = Annotated[bool, typer.Option(
-    "--progress/--no-progress", help="Progress bars on stderr (only on a terminal: never under DVC or a pipe).")]
+    "--progress/--no-progress", help="Progress bars on stderr (only on a terminal, `dvc repro` in a terminal included; never into a pipe or a file).")]
 _EXECUTOR_HELP = ("Where the solves run: local (process pool of --workers; default) or dask (dask.distributed: "
                   "a LocalCluster of --workers processes on this machine, or the cluster of --scheduler).")
 _SCHEDULER_HELP = "Address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --executor dask)."

@@ -16,7 +16,8 @@ def _console() -> Console:
 
 
 def enabled(flag: bool = True) -> bool:
-    """Bars are drawn when asked for, on a terminal (not under DVC or a pipe), unless SDP_NO_PROGRESS=1."""
+    """Bars are drawn when asked for, on a terminal (also under `dvc repro` in a terminal; not into a pipe or
+    a file), unless SDP_NO_PROGRESS=1."""
     return bool(flag) and sys.stderr.isatty() and os.environ.get("SDP_NO_PROGRESS") != "1"
 
 

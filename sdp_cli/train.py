@@ -362,7 +362,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
                 if on_step is not None:
                     on_step(run.step)
                 interrupt.check(run.save)   # Ctrl-C / SIGTERM: stop at this step boundary
-    run.save()
+        run.save()   # a fresh run whose only checkpoint cannot be written (a full disk) leaves no folder either
     log(f"done: {run.step} steps, final loss {run.metrics.rows[-1]['loss'] if run.metrics.rows else 'n/a'}, "
         f"{time.perf_counter() - run.t0:.1f} s; checkpoint {run.ck_path}")
     return run.ck_path

@@ -166,7 +166,7 @@ def test_collect_refuses_corrupt_partial_file(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--task", "nope"], "valid tasks: double_pendulum"),
-    (["--task", "pendulum", "--n-traj", "0"], "n_traj must be > 0"),
+    (["--task", "pendulum", "--n-traj", "0"], "n_traj must be an integer >= 1"),
     (["--task", "pendulum", "--workers", "0"], "--workers must be > 0"),
     (["--task", "pendulum", "--out", "/proc/forbidden/x.npz"], "cannot write"),
 ])

@@ -120,7 +120,7 @@ def test_sobolev_cap_is_validated():
     from sdp_cli.errors import SdpError
     from sdp_cli.policy.config import TrainConfig
 
-    with pytest.raises(SdpError, match="sobolev_cap is a quantile in \\(0, 1\\], got 1.5"):
+    with pytest.raises(SdpError, match="sobolev_cap must be a finite number in \\(0, 1\\], got 1.5"):
         TrainConfig.of(method="sdp", sobolev_cap=1.5)
     with pytest.raises(SdpError, match="sobolev_cap applies to Sobolev diffusion methods \\(sdp\\), not 'dp'"):
         TrainConfig.of(method="dp", sobolev_cap=0.9)

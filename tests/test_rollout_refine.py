@@ -43,8 +43,8 @@ def test_t_a_and_k_rollout_are_validated(trained):
     assert RolloutConfig(n=2).validate(pol).t_a == pol.T_h - pol.T_o
     with pytest.raises(SdpError, match="t_a must be in"):
         RolloutConfig(n=2, t_a=pol.T_h).validate(pol)
-    with pytest.raises(SdpError, match="t_a must be in"):
-        RolloutConfig(n=2, t_a=0).validate(pol)
+    with pytest.raises(SdpError, match="t_a must be an integer >= 1, got 0"):   # its own range, before any policy
+        RolloutConfig(n=2, t_a=0)
     with pytest.raises(SdpError, match="k_rollout"):
         RolloutConfig(n=2, k_rollout=pol.K + 1).validate(pol)
     r = runner.invoke(app, ["rollout", "--policy", str(trained["sdp"]), "--out", "x.npz", "--t-a", "99"])

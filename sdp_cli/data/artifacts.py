@@ -248,6 +248,18 @@ def _check_creatable(p, parent: Path) -> None:
         raise SdpError(f"cannot write {p}: {anc} is not a folder")
     if not os.access(anc, os.W_OK):
         raise SdpError(f"cannot write {p}: permission denied")
+    made = _missing_parents(parent)   # try: create the folders (as the first write will), then remove them
+    try:
+        for d in made:
+            d.mkdir()
+    except OSError as e:
+        raise SdpError(f"cannot write {p}: {e.strerror or e}") from None
+    finally:
+        for d in reversed(made):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
 
 
 def check_regular(path: str | os.PathLike) -> None:

@@ -72,14 +72,21 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
     import shutil
     import tempfile
 
+    from sdp_cli.data.artifacts import IGNORED_TIMINGS
+
     runs, out = Path(runs), Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.report-", dir=out.parent))
+    IGNORED_TIMINGS.clear()
     try:
         files, df = _write(runs, out, stage, experiment, log, keep_missing)
         written = _publish(stage, out, files)
     finally:
         shutil.rmtree(stage, ignore_errors=True)     # this call's own staging folder, empty once published
+    if IGNORED_TIMINGS:   # e.g. after `dvc checkout` restored another run's artifacts beside this machine's timings
+        first = sorted(IGNORED_TIMINGS)[0]
+        log(f"ignored {len(IGNORED_TIMINGS)} timing file(s) whose artifact changed since they were written "
+            f"(e.g. {first}): those times are left out of the report")
     if metrics is not None:
         from sdp_cli.report.figures.curves import metrics_summary, write_metrics
 
