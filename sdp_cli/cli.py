@@ -107,6 +107,10 @@ def rollout_cmd(
     seed: Annotated[int, typer.Option(help="Test seed: instances are disjoint from every training seed.")] = 0,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="Actions played per prediction (default T_h - T_o).")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
+    conversion: Annotated[Optional[str], typer.Option(help="How a predicted chunk of states becomes controls: "
+                                                           "inverse-dynamics (each row alone, open loop) or tracking "
+                                                           "(a time-varying LQR around the chunk); default: the "
+                                                           "task's (docs/training.md).")] = None,
     device: DeviceOpt = "auto",
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
@@ -118,7 +122,8 @@ def rollout_cmd(
 
     set_threads(threads)
     with count_progress("rollout (time steps)", None, progress) as on_step:
-        path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout),
+        path, s = rollout(policy, out, RolloutConfig(n=n, seed=seed, t_a=t_a, k_rollout=k_rollout,
+                                                       conversion=conversion),
                           task_name=task, device=str(resolve_device(device)), on_step=on_step)
     typer.echo(f"wrote {path}: {s['method']} mean cost {s['mean_cost']:.3g} (median {s['median_cost']:.3g}), "
                f"{s['reached']}/{s['n']} reached, {s['diverged']} diverged, {s['rollout_time']:.2f} s")

@@ -128,6 +128,10 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "task": rmeta.get("task"), "method": rmeta.get("method"),
         "n_traj": (rmeta.get("policy_dataset") or {}).get("n_traj"), "epochs": rmeta.get("policy_epoch"),
         "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
+        # predicted chunk -> controls (sdp_cli.tasks.conversion): chunked policies only; rollouts made before the
+        # setting existed used inverse dynamics
+        "conversion": (rmeta["config"].get("conversion") or "inverse-dynamics"
+                       if rmeta["config"].get("k_rollout") is not None else None),
         "horizon": horizon, "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),

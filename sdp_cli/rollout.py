@@ -46,10 +46,15 @@ class RolloutConfig:
     seed: int = 0
     t_a: int | None = field(default=None, metadata=rule(ge=1))  # default T_h - T_o
     k_rollout: int | None = field(default=None, metadata=rule(ge=1))  # default K
+    #: predicted chunk -> controls (sdp_cli.tasks.conversion); None: the task's default
+    conversion: str | None = None
 
     def __post_init__(self):
+        from sdp_cli.tasks.conversion import check_conversion
+
         check_seed(self.seed, "test seed")
         check_fields(self)
+        check_conversion(self.conversion)
 
     def validate(self, policy) -> "RolloutConfig":
         if policy.is_diffusion:
@@ -59,8 +64,9 @@ class RolloutConfig:
             k = self.k_rollout if self.k_rollout is not None else policy.K
             if not 1 <= k <= policy.K:
                 raise SdpError(f"k_rollout must be in [1, K] = [1, {policy.K}], got {k}")
-            return RolloutConfig(self.n, self.seed, t_a, k)
-        return RolloutConfig(self.n, self.seed, 1, None)
+            conversion = self.conversion or policy.task.default_conversion
+            return RolloutConfig(self.n, self.seed, t_a, k, conversion)
+        return RolloutConfig(self.n, self.seed, 1, None, self.conversion)
 
 
 def evaluation_xis(task: Task, n: int, seed: int) -> np.ndarray:
@@ -106,6 +112,8 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
                                            generator=[generators[i] for i in idx],
                                            k_rollout=config.k_rollout)
                 rows = [tau[:, policy.T_o + s] for s in range(config.t_a)]
+                n_play = min(config.t_a, T - t)
+                controller = task.chunk_controller(X[idx, t], np.stack(rows[:n_play], axis=1), config.conversion)
             else:
                 rows = [None]
             for s, a in enumerate(rows):
@@ -115,7 +123,7 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
                 if a is None:  # MLP: one control per state
                     u = np.clip(policy.act(x, xis[idx]), task.u_lb, task.u_ub)
                 else:
-                    u = task.controls_from_action(x, a)
+                    u = controller(x, s)
                 x_next = step_batch(task, x, u)
                 bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > DIVERGENCE_STATE)
                 U[idx, t + s] = u

@@ -133,14 +133,21 @@ def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: in
                                                      for a in ("X", "U", "K", "Phi")}}
 
 
-def memorizer_costs(task: Task, arrays: dict, T_h: int, T_a: int) -> np.ndarray:
-    """Costs of the memorizer of ``arrays``' chunks rolled out on their own instances (N,)."""
+def memorizer_rollouts(task: Task, arrays: dict, T_h: int, T_a: int, conversion: str | None = None) -> dict:
+    """The memorizer of ``arrays``' chunks rolled out on their own instances under ``conversion`` (None: the
+    task's default): :func:`~sdp_cli.rollout.evaluate_rollouts`' record plus ``X``, ``U``."""
     from sdp_cli.policy.memorizer import MemorizerPolicy
     from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, rollout_policy
 
     pol = MemorizerPolicy(task, arrays, T_h)
-    ro = rollout_policy(pol, arrays["xi"], RolloutConfig(n=len(arrays["xi"]), t_a=T_a).validate(pol))
-    return evaluate_rollouts(pol.task, ro["X"], ro["U"], arrays["xi"])["cost"]
+    cfg = RolloutConfig(n=len(arrays["xi"]), t_a=T_a, conversion=conversion).validate(pol)
+    ro = rollout_policy(pol, arrays["xi"], cfg)
+    return {**ro, **evaluate_rollouts(pol.task, ro["X"], ro["U"], arrays["xi"])}
+
+
+def memorizer_costs(task: Task, arrays: dict, T_h: int, T_a: int, conversion: str | None = None) -> np.ndarray:
+    """Costs of the memorizer of ``arrays``' chunks rolled out on their own instances (N,)."""
+    return memorizer_rollouts(task, arrays, T_h, T_a, conversion)["cost"]
 
 
 def optimum_rows(task: Task, cases, n_traj: int = 2, arrays: dict | None = None) -> tuple[list[dict], list[dict]]:

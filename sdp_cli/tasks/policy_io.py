@@ -5,6 +5,8 @@ a task overrides what differs (UR5's observation, the quadrotor's thrust allocat
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pinocchio as pin
 
@@ -73,6 +75,78 @@ class PolicyConventions:
         q = x[..., : self.nq]
         v_next = (a - q) / self.dt if self.action == "q" else a[..., -self.nv:]
         return self.inverse_dynamics(x, np.concatenate([q, v_next], axis=-1))
+
+    # ------------------------------------------------------------ chunk conversion (sdp_cli.tasks.conversion)
+    #: the conversion a rollout uses when none is asked for (``sdp rollout --conversion``)
+    default_conversion: str = "inverse-dynamics"
+
+    def tracking_scales(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(tolerated error per state-tangent coordinate (ndx,), control scale (nu,))``: the ``tracking``
+        conversion's weights by Bryson's rule (``Q = diag(1/tol^2)``, ``R = diag(1/scale^2)``). Default, for
+        joint-space tasks: 0.05 rad of joint angle (the pendulums' goal tolerance), 0.5 rad/s of joint velocity
+        (a tenth of a swing-up's peak speed), half the torque range (the actuators' authority)."""
+        tol = np.concatenate([np.full(self.nv, 0.05), np.full(self.nv, 0.5)])
+        return tol, (self.u_ub - self.u_lb) / 2
+
+    def chunk_controller(self, x0: np.ndarray, actions: np.ndarray, conversion: str | None = None):
+        """The controller of one predicted chunk: ``x0 (n, nx)`` the states reached when it was predicted,
+        ``actions (n, S, n_action)`` the rows to play; call it as ``controller(x (n, nx), s) -> u (n, nu)``.
+        ``conversion``: ``inverse-dynamics`` or ``tracking`` (:mod:`sdp_cli.tasks.conversion`; None: the
+        task's :attr:`default_conversion`). Torque actions are clipped and played under both."""
+        from sdp_cli.tasks.conversion import InverseDynamicsController, TrackingController, check_conversion
+
+        conversion = check_conversion(conversion) or self.default_conversion
+        if self.action == "u" or conversion == "inverse-dynamics":
+            return InverseDynamicsController(self, actions)
+        return TrackingController(self, x0, actions)
+
+    def state_from_action(self, a: np.ndarray) -> np.ndarray:
+        """The state a full-state action names (``action`` "x"): (..., n_action) -> (..., nx). Euclidean: ``a``."""
+        self._require_euclidean("state_from_action")
+        return np.asarray(a, dtype=float).copy()
+
+    def states_from_actions(self, x0: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """The states a chunk predicts, from the state reached: ``x0 (n, nx), actions (n, S, A) -> (n, S+1, nx)``
+        with ``[:, 0] = x0``. ``x``: each row's state; ``v``: ``q`` integrated from ``x0`` with the predicted
+        velocities (semi-implicit Euler: ``q+ = q (+) dt v+``); ``q``: the velocities ``(q+ - q) / dt``."""
+        x0, actions = np.asarray(x0, dtype=float), np.asarray(actions, dtype=float)
+        n, S = actions.shape[:2]
+        out = np.empty((n, S + 1, self.nx))
+        out[:, 0] = x0
+        if self.action == "x":
+            out[:, 1:] = self.state_from_action(actions)
+            return out
+        for s in range(S):
+            q = out[:, s, : self.nq]
+            if self.action == "v":
+                v = actions[:, s]
+                q_next = np.stack([pin.integrate(self.model, qq, self.dt * vv) for qq, vv in zip(q, v)])
+            else:   # "q" (Euclidean configuration)
+                q_next = actions[:, s]
+                v = (q_next - q) / self.dt
+            out[:, s + 1] = np.concatenate([q_next, v], axis=-1)
+        return out
+
+    @functools.cached_property
+    def _f_tangent_jacobians(self):
+        import casadi as ca
+
+        x, u, dx = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("dx", self.ndx)
+        f = self.f_step(self.f_integrate(x, dx), u)
+        zero = ca.DM.zeros(self.ndx)
+        Jx, Ju = ca.substitute([ca.jacobian(f, dx), ca.jacobian(f, u)], [dx], [zero])
+        Jp = ca.substitute(ca.jacobian(self.f_integrate(x, dx), dx), dx, zero)
+        return ca.Function("tangent_jacobians", [x, u], [self.f_step(x, u), Jx, Ju]), ca.Function("Jp", [x], [Jp])
+
+    def tangent_step_jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``A (ndx, ndx), B (ndx, nu)``: the step ``x+ = f(x, u)`` linearized in the state tangent,
+        ``f(x (+) dx, u + du) (-) f(x, u) = A dx + B du`` to first order; from the task's casadi dynamics."""
+        jac, jp = self._f_tangent_jacobians
+        f, Jx, Ju = (np.asarray(m, dtype=float) for m in jac(x, u))
+        if self.nx == self.ndx:
+            return Jx, Ju
+        Jm = np.linalg.pinv(np.asarray(jp(f.ravel()), dtype=float))   # left inverse of the chart at f(x, u)
+        return Jm @ Jx, Jm @ Ju
 
     @property
     def n_action(self) -> int:

@@ -294,6 +294,18 @@ class QuadrotorTask(StartGoalTask):
     #: state control (dq, v) through the thrust allocation, or thrusts directly
     accepted_actions = ("x", "u")
 
+    def state_from_action(self, a: np.ndarray) -> np.ndarray:
+        """The state of an action ``(dq, v)``: :meth:`state_from_tangent`."""
+        return self.state_from_tangent(a)
+
+    def tracking_scales(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ``tracking`` conversion's tolerated errors (Bryson's rule; set from physical scales, not tuned):
+        0.05 m of position (the goal tolerance), 0.1 rad of attitude (a tilt that turns ~10% of the thrust
+        sideways), 0.5 m/s of velocity and 1 rad/s of angular velocity (a tenth of what the flights reach);
+        control scale 2.5 N per rotor (half the thrust range, 0-5 N)."""
+        tol = np.array([0.05] * 3 + [0.1] * 3 + [0.5] * 3 + [1.0] * 3)
+        return tol, np.full(self.nu, (U_MAX - U_MIN) / 2)
+
     def state_action(self, x: np.ndarray) -> np.ndarray:
         """Action ``(dq, v)`` (same as the observation): (..., 13) -> (..., 12)."""
         return self.observation(x)

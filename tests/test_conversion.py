@@ -1,0 +1,136 @@
+"""From predicted chunks to controls (sdp_cli.tasks.conversion): the tracking conversion's gains are the
+LQR's, its linearization is the dynamics', it replays a stored optimum exactly at zero chunk error (and does
+not when its reference is a step off), and the inverse-dynamics conversion is the row-by-row
+``controls_from_action`` it always was."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sdp_cli.tasks import get_task
+from sdp_cli.tasks.contract import MEMORIZER_RTOL, manifold_fd, memorizer_rollouts, solve_instances
+from sdp_cli.tasks.conversion import TrackingController, riccati_gains
+
+
+def test_riccati_gains_are_the_derivative_of_the_lqr_optimum():
+    """On a linear system the optimal first control of the finite-horizon LQR is K_0 dx_0 exactly: solve the
+    LQR as one least-squares problem over all controls and difference it in dx_0."""
+    rng = np.random.default_rng(0)
+    S, n, m = 6, 4, 2
+    A = np.eye(n) + 0.1 * rng.normal(size=(S, n, n))
+    B = 0.1 * rng.normal(size=(S, n, m))
+    Q, R, Qf = np.diag(rng.uniform(0.5, 2, n)), np.diag(rng.uniform(0.5, 2, m)), np.diag(rng.uniform(1, 3, n))
+    K = riccati_gains(A, B, Q, R, Qf)
+
+    def optimal_controls(dx0):
+        # x_s = Phi_s dx0 + sum_{r<s} G_sr u_r: stack and minimize the quadratic cost over u = (u_0 .. u_{S-1})
+        Phi, G = [np.eye(n)], [np.zeros((n, S * m))]
+        for s in range(S):
+            Phi.append(A[s] @ Phi[-1])
+            g = A[s] @ G[-1]
+            g[:, s * m:(s + 1) * m] += B[s]
+            G.append(g)
+        H = np.kron(np.eye(S), R)
+        b = np.zeros(S * m)
+        for s in range(1, S + 1):
+            W = Qf if s == S else Q
+            H = H + G[s].T @ W @ G[s]
+            b = b + G[s].T @ W @ Phi[s] @ dx0
+        return np.linalg.solve(H, -b)
+
+    J = np.stack([optimal_controls(e)[:m] for e in np.eye(n)], axis=1)   # linear: the columns are exact
+    np.testing.assert_allclose(K[0], J, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["quadrotor-0", "ur5-rinit", "double_pendulum"])
+def test_tangent_step_jacobians_equal_finite_differences_on_the_manifold(name):
+    task = get_task(name)
+    rng = np.random.default_rng(1)
+    x = task.initial_state(task.sample_xi(rng))
+    x[task.nq:] = 0.3 * rng.normal(size=task.nv)
+    u = (task.u_lb + task.u_ub) / 2 + 0.1 * (task.u_ub - task.u_lb) * rng.uniform(-1, 1, task.nu)
+    A, B = task.tangent_step_jacobians(x, u)
+    fx = task.step(x, u)
+    np.testing.assert_allclose(A, manifold_fd(task, lambda y: task.difference(fx, task.step(y, u)), x), atol=1e-6)
+    eps = 1e-6
+    Bfd = np.stack([(task.difference(fx, task.step(x, u + eps * e)) - task.difference(fx, task.step(x, u - eps * e)))
+                    / (2 * eps) for e in np.eye(task.nu)], axis=1)
+    np.testing.assert_allclose(B, Bfd, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def optima():
+    return {}
+
+
+def _optima(optima, name):
+    if name not in optima:
+        task = get_task(name)
+        optima[name] = (task, solve_instances(task, 2))
+    return optima[name]
+
+
+@pytest.mark.parametrize("name,T_h,T_a", [("quadrotor-0", 32, 31), ("quadrotor-0", 16, 8), ("ur5-rinit", 64, 63),
+                                          ("ur5-rinit", 32, 16)])
+def test_tracking_replays_a_stored_optimum_at_zero_chunk_error(optima, name, T_h, T_a):
+    """The memorizer (the exact training chunk) under `tracking` reproduces TO's cost to the contract's 1e-6."""
+    task, arrays = _optima(optima, name)
+    to = np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
+    ro = memorizer_rollouts(task, arrays, T_h, T_a, "tracking")
+    assert np.max(np.abs(ro["cost"] - to) / np.abs(to)) <= MEMORIZER_RTOL
+    assert np.all(ro["max_violation"] <= 1e-6)
+
+
+def test_a_reference_one_step_off_breaks_the_replay(optima, monkeypatch):
+    """The replay test can fail: with the reference shifted by one row (each predicted state stands for the next
+    step's), the tracking memorizer misses TO's cost on ur5-rinit by far more than the tolerance."""
+    task, arrays = _optima(optima, "ur5-rinit")
+    to = np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
+    honest = type(task).states_from_actions
+
+    def shifted(self, x0, actions):
+        later = np.concatenate([actions[:, 1:], actions[:, -1:]], axis=1)
+        return honest(self, x0, later)
+
+    monkeypatch.setattr(type(task), "states_from_actions", shifted)
+    cost = memorizer_rollouts(task, arrays, 32, 16, "tracking")["cost"]
+    assert np.max(np.abs(cost - to) / np.abs(to)) > 1e3 * MEMORIZER_RTOL
+
+
+def test_inverse_dynamics_is_the_row_by_row_conversion(optima):
+    """`inverse-dynamics` plays each row through `controls_from_action` from the reached state, bit for bit (the
+    rollout of a fixed chunk, as at 3cd1b8b)."""
+    from sdp_cli.rollout import step_batch
+
+    task, arrays = _optima(optima, "quadrotor-0")
+    rng = np.random.default_rng(2)
+    x0 = arrays["X"][:, 0]
+    acts = task.state_action(arrays["X"][:, 1:9]) + 0.01 * rng.normal(size=(2, 8, task.n_action))
+    ctrl = task.chunk_controller(x0, acts, "inverse-dynamics")
+    x_a = x_b = x0
+    for s in range(8):
+        u_a, u_b = ctrl(x_a, s), task.controls_from_action(x_b, acts[:, s])
+        assert np.array_equal(u_a, u_b)
+        x_a, x_b = step_batch(task, x_a, u_a), step_batch(task, x_b, u_b)
+
+
+def test_tracking_feeds_back_the_chunk_error(optima):
+    """With the reached state off the reference, the tracking controls differ from the feedforward by K dx, and
+    the closed loop ends nearer the reference than the open loop of the same feedforward."""
+    from sdp_cli.rollout import step_batch
+
+    task, arrays = _optima(optima, "quadrotor-0")
+    X = arrays["X"][:1]
+    acts = task.state_action(X[:, 1:17])
+    ctrl = task.chunk_controller(X[:, 0], acts, "tracking")
+    assert isinstance(ctrl, TrackingController)
+    start = task.integrate(X[0, 0], np.r_[0.03, -0.02, 0.02, 0.0, 0.0, 0.0, np.zeros(6)])[None]
+    closed = opened = start
+    for s in range(16):
+        closed = step_batch(task, closed, ctrl(closed, s))
+        opened = step_batch(task, opened, np.clip(ctrl.u_ff[:, s], task.u_lb, task.u_ub))
+    tol, _ = task.tracking_scales()
+    err = lambda x: np.linalg.norm(task.difference(X[0, 16], x[0]) / tol)   # the LQR's own (Bryson) weighting
+    assert not np.allclose(ctrl(start, 0), np.clip(ctrl.u_ff[:, 0], task.u_lb, task.u_ub))
+    assert err(closed) < err(opened)
