@@ -69,6 +69,9 @@ def collect_cmd(
     policy: Annotated[Optional[Path], typer.Option(help="Warm-start TO with this policy's rollouts and keep the better of policy-guess and naive-guess solves (Algorithm 1, lines 3-8).")] = None,
     t_a: Annotated[Optional[int], typer.Option("--t-a", help="With --policy: actions played per prediction.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="With --policy: denoising steps.")] = None,
+    conversion: Annotated[Optional[str], typer.Option(help="With --policy: how its predicted chunks become "
+                                                           "controls (inverse-dynamics or tracking; default: the "
+                                                           "task's).")] = None,
     to: ToOpt = "ms",
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
@@ -85,7 +88,7 @@ def collect_cmd(
     config = CollectConfig(task=task, n_traj=n_traj, seed=seed, max_iter=max_iter, max_attempts=max_attempts,
                            policy=str(policy) if policy else None,
                            policy_fingerprint=policy_fingerprint(policy) if policy else None,
-                           t_a=t_a, k_rollout=k_rollout, to=to)
+                           t_a=t_a, k_rollout=k_rollout, conversion=conversion, to=to)
     out = out or Path("data") / f"{task}-n{n_traj}-s{seed}.npz"
     status(f"{task}: loading the optimizer in each worker (compiled with gcc on first use: minutes for the "
            f"larger tasks, then cached)", progress)
@@ -239,6 +242,9 @@ def loop_cmd(
     eval_t_a: Annotated[Optional[str], typer.Option("--eval-t-a", help="T_a values to evaluate, e.g. 1,4,8 (default: --t-a).")] = None,
     eval_t_a_last: Annotated[Optional[str], typer.Option("--eval-t-a-last", help="Extra T_a values evaluated at the last iteration only (Table 2c), e.g. 1,2,3.")] = None,
     k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
+    conversion: Annotated[Optional[str], typer.Option(help="How predicted chunks become controls in every rollout "
+                                                           "of the loop: inverse-dynamics or tracking (default: the "
+                                                           "task's; see `sdp rollout --help`).")] = None,
     n_test: Annotated[int, typer.Option("--n-test", help="Test instances (fixed set from the test seed).")] = 50,
     test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
@@ -264,7 +270,7 @@ def loop_cmd(
     rollout = LoopRolloutConfig(t_a=t_a, eval_t_a=int_list(eval_t_a, "--eval-t-a"),
                                 eval_t_a_last=int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout,
                                 n_test=n_test, test_seed=test_seed, single_shooting=single_shooting,
-                                eval_refine=eval_refine)
+                                eval_refine=eval_refine, conversion=conversion)
     cfg = LoopConfig(task=task, train=train, rollout=rollout, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
                      reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler, to=to)

@@ -50,6 +50,8 @@ class CollectConfig:
     policy_fingerprint: str | None = None
     t_a: int | None = field(default=None, metadata=rule(ge=1))
     k_rollout: int | None = field(default=None, metadata=rule(ge=1))
+    #: with a policy: how its predicted chunks become controls (sdp_cli.tasks.conversion; None: the task's)
+    conversion: str | None = None
     #: the TO family (sdp_cli.trajopt.TO_FAMILIES): "ms" (fatrop) or "ddp" (box-FDDP, the paper's)
     to: str = "ms"
 
@@ -60,8 +62,11 @@ class CollectConfig:
         check_seed(self.seed)
         check_to(self.to)
         check_fields(self)
-        if self.policy is None and (self.t_a is not None or self.k_rollout is not None):
-            raise SdpError("--t-a and --k-rollout set the policy's rollouts: they need --policy")
+        from sdp_cli.tasks.conversion import check_conversion
+
+        check_conversion(self.conversion)
+        if self.policy is None and (self.t_a is not None or self.k_rollout is not None or self.conversion):
+            raise SdpError("--t-a, --k-rollout and --conversion set the policy's rollouts: they need --policy")
         if self.max_attempts is not None and self.max_attempts < self.n_traj:
             raise SdpError(f"max_attempts ({self.max_attempts}) must be >= n_traj ({self.n_traj})")
 
@@ -77,6 +82,8 @@ class CollectConfig:
             ident["to"] = self.to
         if self.policy is not None:
             ident.update(policy=self.policy_fingerprint, t_a=self.t_a, k_rollout=self.k_rollout)
+            if self.conversion is not None:   # (partial results made before the setting existed stay valid)
+                ident["conversion"] = self.conversion
         return ident
 
 
@@ -94,8 +101,8 @@ class _Jobs:
             if self.policy.task_name != config.task:
                 raise SdpError(f"policy {config.policy} was trained on task {self.policy.task_name!r}, "
                                f"not {config.task!r}")
-            self.rcfg = RolloutConfig(n=1, seed=config.seed, t_a=config.t_a,
-                                      k_rollout=config.k_rollout).validate(self.policy)
+            self.rcfg = RolloutConfig(n=1, seed=config.seed, t_a=config.t_a, k_rollout=config.k_rollout,
+                                      conversion=config.conversion).validate(self.policy)
 
     def make(self, indices: list[int]) -> list[tuple[Callable, tuple, list[int]]]:
         """Jobs ``(fn, args, indices)``: one per index, or (``to="ddp"``) one per batch of up to

@@ -17,7 +17,7 @@ PIPELINES_DIR = Path("pipelines")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
                   "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50,
                   "test_seed": 0, "max_iter": 1000, "single_shooting": False, "train": {}, "tag": None,
-                  "n_traj_schedule": None, "to": "ms"}
+                  "n_traj_schedule": None, "to": "ms", "conversion": None}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:
@@ -42,7 +42,7 @@ GROUP_TYPES = {"task": "str", "methods": "[str]", "seeds": "[int]", "n_traj": "[
                "epochs": "int", "save_at": "[int]", "horizon": "int", "t_a": "int?", "eval_t_a": "[int]",
                "eval_t_a_last": "[int]", "k_rollout": "int?", "n_test": "int", "test_seed": "int",
                "max_iter": "int", "single_shooting": "bool", "train": "dict", "tag": "str?",
-               "n_traj_schedule": "[int]?", "to": "str"}
+               "n_traj_schedule": "[int]?", "to": "str", "conversion": "str?"}
 #: the keys whose values multiply into the group's runs (methods x seeds x n_traj)
 SWEEP_KEYS = ("methods", "seeds", "n_traj")
 _PY = {"int": int, "str": str, "bool": bool, "dict": dict, "float": (int, float)}

@@ -46,6 +46,7 @@ class LoopRolloutConfig:
     eval_t_a: tuple = field(default=(), metadata=rule(ge=1))   # T_a values evaluated on the test set (default: t_a)
     eval_t_a_last: tuple = field(default=(), metadata=rule(ge=1))  # extra T_a values at the last iteration (Table 2c)
     k_rollout: int | None = field(default=None, metadata=rule(ge=1))  # denoising steps at rollout (default K)
+    conversion: str | None = None  # predicted chunk -> controls (sdp_cli.tasks.conversion; default: the task's)
     n_test: int = field(default=50, metadata=rule(ge=1))
     test_seed: int = 0
     single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
@@ -54,8 +55,11 @@ class LoopRolloutConfig:
     def __post_init__(self):
         from sdp_cli.seeds import check_seed
 
+        from sdp_cli.tasks.conversion import check_conversion
+
         check_seed(self.test_seed, "test seed")
         check_fields(self)
+        check_conversion(self.conversion)
         for name in ("eval_t_a", "eval_t_a_last"):
             object.__setattr__(self, name, tuple(int(v) for v in getattr(self, name)))
 
@@ -222,6 +226,7 @@ def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None
         old = _dotted({**migrate_loop_dict(raw), "results_version": raw.get("results_version", 1)})
     except (OSError, ValueError, KeyError, TypeError, SdpError) as e:
         raise SdpError(f"corrupt loop config {path}: {e}") from None
+    old.setdefault("rollout.conversion", None)   # folders made before the setting: the task's default
     new = _dotted(json.loads(_config_json(cfg)))
     bad = [k for k in new if k not in RESUMABLE_FIELDS and k in old and old[k] != new[k]]
     if same_results and old["results_version"] != new["results_version"]:
@@ -282,7 +287,8 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
             new_work += 1
             with count_progress(f"rollout {tag} (time steps)", None, progress) as on_step:
                 _, s = rollout(ckpt, ro, RolloutConfig(n=r.n_test, seed=r.test_seed, t_a=t_a,
-                                                             k_rollout=r.k_rollout), device=cfg.device,
+                                                             k_rollout=r.k_rollout, conversion=r.conversion),
+                               device=cfg.device,
                                on_step=on_step)
             log(f"  rollout {tag}: mean cost {s['mean_cost']:.3g}, {s['reached']}/{s['n']} reached")
         if r.eval_refine and rf.exists():
@@ -332,7 +338,8 @@ def collect_iteration(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | No
                              policy=str(prev_policy) if prev_policy else None,
                              policy_fingerprint=policy_fingerprint(prev_policy) if prev_policy else None,
                              t_a=cfg.rollout.t_a if prev_policy else None,
-                             k_rollout=cfg.rollout.k_rollout if prev_policy else None, to=cfg.to)
+                             k_rollout=cfg.rollout.k_rollout if prev_policy else None,
+                             conversion=cfg.rollout.conversion if prev_policy else None, to=cfg.to)
         from sdp_cli.progress import collect_progress
 
         with collect_progress(ccfg.n_traj, progress) as on_update:

@@ -103,7 +103,7 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
                               "horizon": g["horizon"], "save_at": [int(e) for e in g["save_at"] if e < g["epochs"]]})
     rollout = LoopRolloutConfig(t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]), eval_t_a_last=tuple(g["eval_t_a_last"]),
                                 k_rollout=g["k_rollout"], n_test=g["n_test"], test_seed=g["test_seed"],
-                                single_shooting=g["single_shooting"])
+                                single_shooting=g["single_shooting"], conversion=g["conversion"])
     return LoopConfig(task=g["task"], train=train, rollout=rollout, n_algo=g["n_algo"],
                       n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), max_iter=g["max_iter"],
                       workers=1, device="cpu", to=g["to"])

@@ -57,7 +57,9 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
     pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
     ``<method>-h<T_h>-ta<T_a>``; several TO families (``to``: collection, refinement and TO alone by ``ms`` or
     ``ddp``) make ``<method>-to-<family>``, so that TO alone and refined are drawn per family (rows evaluated
-    before the column existed are ``ms``)."""
+    before the column existed are ``ms``); several conversions of predicted chunks (``conversion``,
+    :mod:`sdp_cli.tasks.conversion`) make ``<method>-conv-<tag>`` (:data:`CONVERSION_TAGS`; chunked rows
+    evaluated before the column existed used ``inverse-dynamics``), before the TO family's suffix."""
     if df.empty:
         return df
     df = df.copy()
@@ -70,11 +72,29 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         pair = df.horizon.astype("Int64").astype(str) + "-ta" + run_t_a.astype("Int64").astype(str)
         mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
+    if "conversion" in df:
+        conv = df["conversion"].astype(object)
+        chunked = df["k_rollout"].notna() if "k_rollout" in df else conv.notna()
+        conv = conv.where(conv.notna() | ~chunked, "inverse-dynamics")
+        mixed = (conv.groupby(df.task).transform("nunique") > 1) & conv.notna()
+        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-conv-" + conv[mixed].map(
+            lambda c: CONVERSION_TAGS.get(c, c))
     if "to" in df:
         fam = to_family(df)
         mixed = fam.groupby(df.task).transform("nunique") > 1
         df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-to-" + fam[mixed]
     return df
+
+
+#: a conversion's tag in variant names (``sdp-conv-track``) and its name in legends
+CONVERSION_TAGS = {"inverse-dynamics": "invdyn", "tracking": "track"}
+CONVERSION_NAMES = {"invdyn": "inverse dynamics", "track": "tracking"}
+
+
+def split_conversion(method: str) -> tuple[str, str | None]:
+    """``(variant without its conversion, conversion tag)``: ``sdp-conv-track`` -> ``("sdp", "track")``."""
+    m = re.fullmatch(r"(.+)-conv-(\w+)", str(method))
+    return (m[1], m[2]) if m else (str(method), None)
 
 
 #: how reports name a TO family (``to`` of the evaluations); ``ms`` is the main one
@@ -123,12 +143,12 @@ def family_of(method: str) -> str:
 def plain_method(method: str) -> str:
     """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
     :func:`method_variants`)."""
-    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", split_family(method)[0])
+    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", split_conversion(split_family(method)[0])[0])
 
 
 def ta_pair(method: str) -> tuple[int, int] | None:
     """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
-    m = re.fullmatch(r"h(\d+)-ta(\d+)", str(method).partition("-")[2])
+    m = re.fullmatch(r"h(\d+)-ta(\d+)", split_conversion(split_family(method)[0])[0].partition("-")[2])
     return (int(m[1]), int(m[2])) if m else None
 
 
@@ -141,6 +161,9 @@ def method_label(method: str) -> str:
     base, family = split_family(method)
     if family:
         return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
+    base, conv = split_conversion(base)
+    if conv:
+        return f"{method_label(base)} ({CONVERSION_NAMES.get(conv, conv)})"
     base, sep, rest = str(method).partition("-")
     name = PAPER_NAMES.get(base, base.upper())
     pair = ta_pair(method)
