@@ -44,25 +44,6 @@ def blocks(n_action: int, nv: int) -> dict[str, slice]:
     return {"q part": slice(0, q), "v[0:3]": slice(q, q + 3), "v[3:]": slice(q + 3, n_action)}
 
 
-class NoisyMemorizer:
-    """The memorizer's chunk plus noise ``sigma * scale``: the rollout's policy protocol."""
-
-    is_diffusion, K = True, 1
-
-    def __init__(self, base, scale: np.ndarray, sigma: float, kind: str, seed: int):
-        self.base, self.scale, self.sigma, self.kind = base, scale, sigma, kind
-        self.task, self.T_h, self.T_o = base.task, base.T_h, base.T_o
-        self.rng = np.random.default_rng(seed)
-
-    def predict_chunk(self, xis, x, u_prev, generator=None, k_rollout=None) -> np.ndarray:
-        tau = self.base.predict_chunk(xis, x, u_prev)                               # (B, T_h, A)
-        B, H, A = tau.shape
-        shape = (B, H, A) if self.kind == "white" else (B, 1, A)
-        noise = np.broadcast_to(self.rng.standard_normal(shape), (B, H, A)).copy()
-        noise[:, : self.T_o] = 0.0
-        return tau + self.sigma * noise * self.scale
-
-
 def to_costs(task, arrays: dict) -> np.ndarray:
     """TO's cost of each of the dataset's own trajectories, ``(N,)``."""
     return np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
@@ -125,7 +106,7 @@ def main() -> None:
     from sdp_cli.data.artifacts import code_revision
     from sdp_cli.data.chunks import fit_normalizer, load_dataset
     from sdp_cli.policy import load_policy
-    from sdp_cli.policy.memorizer import MemorizerPolicy
+    from sdp_cli.policy.memorizer import MemorizerPolicy, NoisyMemorizer
 
     seeds = [int(s) for s in a.seeds.split(",")]
     noisy, fits, by_block = [], [], []

@@ -73,6 +73,8 @@ def test_packing_bench_keeps_the_rule_it_compares_with():
 def test_action_noise_bench_perturbs_only_the_played_rows_in_the_networks_units():
     """bench/action_noise.py: the inpainted history rows stay exact, noise is sigma x the coordinate's half-range,
     an offset is one draw held over a chunk, and the blocks of a state action partition it."""
+    from sdp_cli.policy.memorizer import NoisyMemorizer
+
     mod = _bench("action_noise")
 
     class Base:
@@ -83,11 +85,11 @@ def test_action_noise_bench_perturbs_only_the_played_rows_in_the_networks_units(
 
     scale = np.array([1.0, 10.0, 0.0])
     xis = np.zeros((4000, 1))
-    white = mod.NoisyMemorizer(Base(), scale, 0.01, "white", seed=0).predict_chunk(xis, None, None)
+    white = NoisyMemorizer(Base(), scale, 0.01, "white", seed=0).predict_chunk(xis, None, None)
     assert np.all(white[:, 0] == 1.0) and np.all(white[:, :, 2] == 1.0)
     assert np.allclose((white[:, 1:, :2] - 1).std(axis=(0, 1)), [0.01, 0.1], rtol=0.05)
-    offset = mod.NoisyMemorizer(Base(), scale, 0.01, "offset", seed=0).predict_chunk(xis, None, None)
+    offset = NoisyMemorizer(Base(), scale, 0.01, "offset", seed=0).predict_chunk(xis, None, None)
     assert np.all(offset[:, 0] == 1.0) and np.allclose(offset[:, 1:], offset[:, 1:2])
-    assert np.all(mod.NoisyMemorizer(Base(), scale, 0.0, "white", seed=0).predict_chunk(xis, None, None) == 1.0)
+    assert np.all(NoisyMemorizer(Base(), scale, 0.0, "white", seed=0).predict_chunk(xis, None, None) == 1.0)
     b = mod.blocks(12, 6)
     assert [np.arange(12)[s].tolist() for s in b.values()] == [list(range(6)), [6, 7, 8], [9, 10, 11]]

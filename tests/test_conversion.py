@@ -134,3 +134,53 @@ def test_tracking_feeds_back_the_chunk_error(optima):
     err = lambda x: np.linalg.norm(task.difference(X[0, 16], x[0]) / tol)   # the LQR's own (Bryson) weighting
     assert not np.allclose(ctrl(start, 0), np.clip(ctrl.u_ff[:, 0], task.u_lb, task.u_ub))
     assert err(closed) < err(opened)
+
+
+def _rows(table: dict) -> list[dict]:
+    """Rows of a tolerance table from ``{(conversion, sigma): (success, max deviation)}`` at one (T_h, T_a)."""
+    return [{"conversion": c, "T_h": 32, "T_a": 31, "sigma": s, "success": ok, "cost / TO, median": 1.0,
+             "max |cost / TO - 1|": dev} for (c, s), (ok, dev) in table.items()]
+
+
+def test_the_rule_picks_the_admissible_conversion_that_forgives_more():
+    from sdp_cli.tasks.noise import rule_verdict
+
+    quad, ur5 = get_task("quadrotor-0"), get_task("ur5-rinit")
+    rows = _rows({("inverse-dynamics", 0.0): (1.0, 1e-9), ("inverse-dynamics", 0.001): (1.0, 0.1),
+                  ("inverse-dynamics", 0.003): (0.25, 0.1), ("inverse-dynamics", 0.01): (0.0, 1.0),
+                  ("tracking", 0.0): (1.0, 1e-9), ("tracking", 0.001): (1.0, 0.1),
+                  ("tracking", 0.003): (0.95, 0.1), ("tracking", 0.01): (0.5, 1.0)})
+    v = rule_verdict(quad, rows)
+    assert v["admissible"] == ["inverse-dynamics", "tracking"] and v["default"] == "tracking"
+    assert v["tolerant"] == {"inverse-dynamics": False, "tracking": True}
+    assert rule_verdict(ur5, rows)["default"] == "inverse-dynamics"          # the paper fixes UR5's
+    broken = [dict(r, **{"max |cost / TO - 1|": 1e-3}) if r["conversion"] == "tracking" and r["sigma"] == 0 else r
+              for r in rows]
+    v = rule_verdict(quad, broken)                                           # not replaying TO: not admissible
+    assert v["admissible"] == ["inverse-dynamics"] and v["default"] == "inverse-dynamics"
+    tie = [dict(r, success=1.0) for r in rows]
+    assert rule_verdict(quad, tie)["default"] == "inverse-dynamics"          # a tie keeps the earlier default
+
+
+def test_check_task_prints_a_noise_row_for_state_action_tasks():
+    from sdp_cli.tasks.noise import noise_rows_text
+
+    quad = get_task("quadrotor-0")
+    rows = _rows({("inverse-dynamics", 0.001): (1.0, 0.0), ("inverse-dynamics", 0.003): (0.5, 0.0),
+                  ("inverse-dynamics", 0.01): (0.0, 0.0), ("tracking", 0.001): (1.0, 0.0),
+                  ("tracking", 0.003): (0.9, 0.0), ("tracking", 0.01): (0.5, 0.0)})
+    lines = noise_rows_text(quad, rows)
+    assert "inverse-dynamics (default) 100% / 50% / 0%: fragile; tracking 100% / 90% / 50%: tolerant" in lines[0]
+    assert lines[-1].startswith("noise  fragile:")
+
+
+@pytest.mark.slow
+def test_the_noise_rule_on_the_quadrotor_memorizer():
+    """The rule's study at a reduced size (4 instances of one collection seed, 1 draw): both conversions are
+    admissible on quadrotor-0 and the verdict names one of them."""
+    from sdp_cli.tasks.noise import rule_verdict, tolerance_table
+
+    task = get_task("quadrotor-0")
+    rows = tolerance_table(task, [solve_instances(task, 4)], [(32, 31)], draws=1)
+    v = rule_verdict(task, rows)
+    assert v["admissible"] == ["inverse-dynamics", "tracking"] and v["default"] in v["admissible"]

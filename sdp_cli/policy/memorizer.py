@@ -48,3 +48,29 @@ class MemorizerPolicy:
         keys = self.keys / self.scale
         d = ((q[:, None, :] - keys[None]) ** 2).sum(-1)                          # (B, N S)
         return self.chunks[np.argmin(d, axis=1)].copy()
+
+
+class NoisyMemorizer:
+    """The memorizer's chunk plus noise ``sigma * scale`` (``scale (A,)``: the normalizer's half-range of each
+    action coordinate, so sigma is in the units the networks see); rows ``[:T_o]`` (the inpainted history) stay
+    exact. ``kind``: ``white`` (independent per row and coordinate) or ``offset`` (one draw per chunk and
+    coordinate, held over its rows). A stand-in for a learner that is nearly right (``sdp check-task``'s
+    noise-tolerance row, ``bench/action_noise.py``)."""
+
+    is_diffusion, K = True, 1
+
+    def __init__(self, base: MemorizerPolicy, scale: np.ndarray, sigma: float, kind: str = "white", seed: int = 0):
+        if kind not in ("white", "offset"):
+            raise ValueError(f"noise kind must be white or offset, got {kind!r}")
+        self.base, self.scale, self.sigma, self.kind = base, np.asarray(scale, dtype=float), float(sigma), kind
+        self.task, self.T_h, self.T_o = base.task, base.T_h, base.T_o
+        self.rng = np.random.default_rng(seed)
+
+    def predict_chunk(self, xis, x, u_prev, generator=None, k_rollout=None) -> np.ndarray:
+        """The nearest training chunk plus noise: ``(B, n_xi), (B, nx), (B, nu) -> (B, T_h, A)``."""
+        tau = self.base.predict_chunk(xis, x, u_prev)
+        B, H, A = tau.shape
+        shape = (B, H, A) if self.kind == "white" else (B, 1, A)
+        noise = np.broadcast_to(self.rng.standard_normal(shape), (B, H, A)).copy()
+        noise[:, : self.T_o] = 0.0
+        return tau + self.sigma * noise * self.scale

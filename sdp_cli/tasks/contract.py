@@ -221,10 +221,19 @@ def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool
     if n_traj <= 0:
         raise SdpError(f"--n-traj must be > 0, got {n_traj}")
     pairs = parse_cases(cases) if cases else pipeline_cases(name)
-    rows = model_rows(t) + (optimum_rows(t, pairs, n_traj)[0] if solve else [])
+    rows, noise = model_rows(t), []
+    if solve:
+        arrays = solve_instances(t, n_traj)
+        rows += optimum_rows(t, pairs, n_traj, arrays)[0]
+        if t.action != "u":   # how much chunk error each conversion forgives (informs; never fails the check)
+            from sdp_cli.tasks.noise import noise_rows_text, tolerance_table
+
+            noise = noise_rows_text(t, tolerance_table(t, [arrays], pairs))
     width = max(len(r["check"]) for r in rows)
     for r in rows:
         echo(f"{'pass' if r['ok'] else 'FAIL'}  {r['check']:<{width}}  {r['value']:.3g} (limit {r['limit']:.3g})")
+    for line in noise:
+        echo(line)
     failed = [r["check"] for r in rows if not r["ok"]]
     if failed:
         raise SdpError(f"task {name!r} fails {len(failed)} of {len(rows)} checks: {'; '.join(failed)}")

@@ -79,6 +79,8 @@ class PolicyConventions:
     # ------------------------------------------------------------ chunk conversion (sdp_cli.tasks.conversion)
     #: the conversion a rollout uses when none is asked for (``sdp rollout --conversion``)
     default_conversion: str = "inverse-dynamics"
+    #: the conversion the paper prescribes for this task, if it does (the noise rule keeps it as the default)
+    paper_conversion: str | None = None
 
     def tracking_scales(self) -> tuple[np.ndarray, np.ndarray]:
         """``(tolerated error per state-tangent coordinate (ndx,), control scale (nu,))``: the ``tracking``

@@ -86,6 +86,8 @@ class Ur5Task(StartGoalTask):
     """UR5 reaching a 3D end-effector target under torque limits."""
 
     action = "x"
+    #: the paper fixes UR5's conversion: "only v_t is used", controls by inverse dynamics (RNEA)
+    paper_conversion = "inverse-dynamics"
     reference_solve_s = (0.108, 50.3)   # results/tasks/TO_alone.md (single shooting: its 1000-iteration cap)
     reference_ddp_s = 1.6               # box-FDDP on ur5-fixed (ur5-rinit: 3.0)
     compile_family = "ur5"  # the 4 variants differ only in how xi is sampled: one compiled OCP
