@@ -18,7 +18,8 @@ the error a learner is left with. This bench tells the two apart on fig1's runs 
   on the true states (every ``--stride``-th start, rows after the history), in the same units; and their own
   rollout on those training instances.
 
-Both are rolled out with the rollout's conventions (:func:`sdp_cli.rollout.rollout_policy`, default T_a).
+Both are rolled out with the rollout's conventions (:func:`sdp_cli.rollout.rollout_policy`, default T_a), under
+each conversion of ``--conversions`` (:mod:`sdp_cli.tasks.conversion`; a ``conversion`` column).
 
     python bench/action_noise.py --runs /work/sweeps/fig1 --tasks ur5-fixed,quadrotor-0 --n-traj 8 --seeds 0,1,2
 """
@@ -49,14 +50,15 @@ def to_costs(task, arrays: dict) -> np.ndarray:
     return np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
 
 
-def replay(policy, arrays: dict, to: np.ndarray) -> dict:
-    """Roll ``policy`` out on the dataset's own instances; success, cost / ``to`` (TO's, ``(N,)``), final distance."""
+def replay(policy, arrays: dict, to: np.ndarray, conversion: str | None = None) -> dict:
+    """Roll ``policy`` out on the dataset's own instances under ``conversion``; success, cost / ``to`` (TO's,
+    ``(N,)``), final distance."""
     import torch
 
     from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
 
     xis = arrays["xi"]
-    cfg = RolloutConfig(n=len(xis), seed=0).validate(policy)
+    cfg = RolloutConfig(n=len(xis), seed=0, conversion=conversion).validate(policy)
     with torch.no_grad():
         ro = rollout_policy(policy, xis, cfg, generators=instance_generators(0, range(len(xis))))
     ev = evaluate_rollouts(policy.task, ro["X"], ro["U"], xis)
@@ -98,6 +100,8 @@ def main() -> None:
     ap.add_argument("--n-traj", type=int, default=8)
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--stride", type=int, default=5, help="every stride-th chunk start is compared")
+    ap.add_argument("--conversions", default="inverse-dynamics",
+                    help="comma-separated conversions of predicted chunks (inverse-dynamics, tracking)")
     ap.add_argument("--out", type=Path, default=Path("results/tasks/action_noise.md"))
     a = ap.parse_args()
     import torch
@@ -109,6 +113,7 @@ def main() -> None:
     from sdp_cli.policy.memorizer import MemorizerPolicy, NoisyMemorizer
 
     seeds = [int(s) for s in a.seeds.split(",")]
+    convs = a.conversions.split(",")
     noisy, fits, by_block = [], [], []
     for task_name in a.tasks.split(","):
         per = {}
@@ -123,33 +128,39 @@ def main() -> None:
             mem_x.scale[task.nx:task.nx + task.nu] = np.inf
             to = to_costs(task, arrays)
             scale = fit_normalizer(task, arrays, mem.task.action).action_scale.double().numpy()
-            for j, sigma in enumerate(SIGMAS):
-                for kind in ("white", "offset"):
-                    for key, m in (("(x, u_prev, xi)", mem), ("(x, xi)", mem_x)):
-                        r = replay(NoisyMemorizer(m, scale, sigma, kind, seed=s * 100 + j), arrays, to)
-                        per.setdefault((kind, key, sigma), []).append(r)
+            for conv in convs:
+                for j, sigma in enumerate(SIGMAS):
+                    for kind in ("white", "offset"):
+                        for key, m in (("(x, u_prev, xi)", mem), ("(x, xi)", mem_x)):
+                            r = replay(NoisyMemorizer(m, scale, sigma, kind, seed=s * 100 + j), arrays, to, conv)
+                            per.setdefault((conv, kind, key, sigma), []).append(r)
             if mem.task.action == "x":
                 for name, sl in blocks(scale.size, task.nv).items():
                     for sigma in BLOCK_SIGMAS:
                         only = np.zeros_like(scale)
                         only[sl] = scale[sl]
-                        r = replay(NoisyMemorizer(mem, only, sigma, "white", seed=s * 100 + 50), arrays, to)
-                        per.setdefault(("block", name, sigma), []).append(r)
+                        for conv in convs:
+                            r = replay(NoisyMemorizer(mem, only, sigma, "white", seed=s * 100 + 50), arrays, to, conv)
+                            per.setdefault((conv, "block", name, sigma), []).append(r)
             for m, pol in policies.items():
                 data, _, _ = load_dataset(runs[m] / "it0" / "data.npz", require_gains=False)
                 rms, first = fit_error(pol, data, MemorizerPolicy(task, data, T_h).chunks, scale, a.stride)
-                fits.append({"task": task_name, "method": m, "seed": s, "chunk error RMS": rms,
-                             "first row RMS": first, **summary([replay(pol, data, to_costs(task, data))])})
-        for (kind, key, sigma), r in sorted(per.items(), key=lambda kv: (kv[0][0], kv[0][1] != "(x, u_prev, xi)", kv[0][2])):
+                for conv in convs:
+                    fits.append({"task": task_name, "method": m, "seed": s, "conversion": conv, "chunk error RMS": rms,
+                                 "first row RMS": first, **summary([replay(pol, data, to_costs(task, data), conv)])})
+        for (conv, kind, key, sigma), r in sorted(per.items(), key=lambda kv: (kv[0][0], kv[0][1],
+                                                                                 kv[0][2] != "(x, u_prev, xi)", kv[0][3])):
             if kind == "block":
-                by_block.append({"task": task_name, "noisy block": key, "sigma": sigma, **summary(r)})
+                by_block.append({"task": task_name, "conversion": conv, "noisy block": key, "sigma": sigma,
+                                 **summary(r)})
                 continue
-            noisy.append({"task": task_name, "noise": kind, "key": key, "sigma": sigma, "T_a": r[0]["t_a"], **summary(r)})
+            noisy.append({"task": task_name, "conversion": conv, "noise": kind, "key": key, "sigma": sigma,
+                          "T_a": r[0]["t_a"], **summary(r)})
     noisy, fits, by_block = pd.DataFrame(noisy), pd.DataFrame(fits), pd.DataFrame(by_block)
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     text = ["# How precise must a learner be? (bench/action_noise.py)", "",
             f"Written by `python bench/action_noise.py --runs {a.runs} --tasks {a.tasks} --n-traj {a.n_traj} "
-            f"--seeds {a.seeds}` on {stamp}, code revision `{code_revision()}`, {platform.node()} "
+            f"--seeds {a.seeds} --conversions {a.conversions}` on {stamp}, code revision `{code_revision()}`, {platform.node()} "
             f"({platform.machine()}).", "",
             f"Runs: fig1's SDP and DP at n_traj {a.n_traj}, seeds {a.seeds}, each rolled out on its own "
             f"{a.n_traj} training instances. Success: final distance within the task's tolerance. Cost / TO: the "

@@ -220,6 +220,8 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
+    if stack is not None and stack <= 0:
+        raise SdpError(f"--stack must be >= 1, got {stack}")
     runs = loop_configs(name, load_experiment(name, root))
     train = training_stages(runs)
     if not train:

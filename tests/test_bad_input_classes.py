@@ -125,6 +125,7 @@ def test_outputs_that_are_not_regular_files_are_refused_before_work(made, work, 
     (["loop", "--task", "pendulum", "--method", "dp", "--kernel-size", "2", "--out", "L"], "kernel_size"),
     (["plot-dataset", "{data}", "--out", "x.png", "--dpi", "0"], "--dpi"),
     (["plot-dataset", "{data}", "--out", "x.png", "--dpi", "100000"], "--dpi"),
+    (["pipeline", "small", "--estimate", "--stack", "0"], "--stack"),
 ])
 def test_numeric_options_are_finite_and_in_range(made, work, argv, needle):
     """At 3cd1b8b `--ema-power nan` trained a policy whose EMA weights were NaN (exit 0), `--n-groups 0`,
@@ -239,6 +240,7 @@ def test_ctrl_c_during_start_up_is_one_line(tmp_path):
     (["collect", "--task", "pendulum", "--n-traj", "1", "--t-a", "4", "--out", "d.npz"], 1, "--policy"),
     (["collect", "--task", "pendulum", "--n-traj", "1", "--k-rollout", "2", "--out", "d.npz"], 1, "--policy"),
     (["train", "--data", "{data}", "--method", "dp", *TINY_FLAGS, "--resume", "--out", "adir"], 1, "--resume"),
+    (["check-task", "pendulum", "--no-solve", "--cases", "8:4"], 1, "--cases"),
 ])
 def test_options_that_would_be_ignored_are_refused(made, work, argv, code, needle):
     """At 3cd1b8b `collect --t-a` without `--policy` ignored it, `train --resume` on an empty folder started a

@@ -220,6 +220,8 @@ def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool
     t = get_task(name)
     if n_traj <= 0:
         raise SdpError(f"--n-traj must be > 0, got {n_traj}")
+    if cases and not solve:
+        raise SdpError("--cases sets the memorizer's (T_h, T_a), a check that needs TO optima: drop --no-solve")
     pairs = parse_cases(cases) if cases else pipeline_cases(name)
     rows, noise = model_rows(t), []
     if solve:

@@ -1,0 +1,91 @@
+"""The confirmation of the conversions: fig1's own quadrotor runs rolled out under each conversion from the same
+checkpoints, on the test set and on their own training instances. Writes results/tasks/confirmation.md.
+
+The runs are fig1's (`sdp pipeline fig1 --run --only quadrotor-0-sdp-n8-s0,...`: one iteration, 2e4 epochs,
+T_h 32, the default T_a 31), so the re-run of Fig. 1 reuses them. Each final policy (EMA weights) is rolled out
+with the rollout's conventions (sdp_cli.rollout.rollout_policy, instance generators of seed 0) under
+`inverse-dynamics` and `tracking` (sdp_cli/tasks/conversion.py): on the 50 test instances of test seed 0 (the
+loop's own evaluation set; its inverse-dynamics row must equal the run's eval.csv) and on the run's own training
+instances, where the memorizer reaches TO's cost.
+
+    python bench/conversion_confirmation.py --runs runs/fig1 --prefix quadrotor-0-
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=Path, default=Path("runs/fig1"))
+    ap.add_argument("--prefix", default="quadrotor-0-", help="run folders whose name starts with this")
+    ap.add_argument("--methods", default="sdp,dp")
+    ap.add_argument("--n-test", type=int, default=50)
+    ap.add_argument("--out", type=Path, default=Path("results/tasks/confirmation.md"))
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    from sdp_cli.data.artifacts import code_revision, load_npz
+    from sdp_cli.policy import load_policy
+    from sdp_cli.rollout import (RolloutConfig, evaluate_rollouts, evaluation_xis, instance_generators,
+                                 rollout_policy)
+    from sdp_cli.tasks.conversion import CONVERSIONS
+
+    methods = a.methods.split(",")
+    runs = sorted(p for p in a.runs.iterdir() if p.name.startswith(a.prefix) and (p / "summary.csv").is_file()
+                  and p.name[len(a.prefix):].split("-")[0] in methods)
+    rows, t0 = [], time.perf_counter()
+    for run in runs:
+        data, _ = load_npz(run / "it0" / "data.npz", kind="dataset")
+        pol = load_policy(run / "it0" / "policy")
+        task = pol.task
+        to = np.array([task.cost(X, U, xi) for X, U, xi in zip(data["X"], data["U"], data["xi"])])
+        sets = {f"train ({len(data['xi'])})": data["xi"], f"test ({a.n_test})": evaluation_xis(task, a.n_test, 0)}
+        for conv in CONVERSIONS:
+            for where, xis in sets.items():
+                cfg = RolloutConfig(n=len(xis), seed=0, conversion=conv).validate(pol)
+                with torch.no_grad():
+                    ro = rollout_policy(pol, xis, cfg, generators=instance_generators(0, range(len(xis))))
+                ev = evaluate_rollouts(task, ro["X"], ro["U"], xis)
+                rows.append({"run": run.name, "method": pol.method, "n_traj": len(data["xi"]),
+                             "seed": pol.config.seed, "conversion": conv, "instances": where,
+                             "success": float(np.mean(ev["reached"])),
+                             "final distance median (m)": float(np.median(ev["goal_distance"])),
+                             "policy cost median": float(np.median(ev["cost"])),
+                             "cost / TO median": (float(np.median(ev["cost"] / to)) if where.startswith("train")
+                                                  else float("nan"))})
+                print(rows[-1], flush=True)
+    df = pd.DataFrame(rows)
+    summary = (df.groupby(["method", "n_traj", "conversion", "instances"], sort=True)
+                 .agg(runs=("run", "count"), success=("success", "mean"),
+                      final_distance_median=("final distance median (m)", "median"))
+                 .reset_index().rename(columns={"final_distance_median": "final distance, median of runs (m)"}))
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    text = ["# Confirmation: fig1's quadrotor policies under both conversions (bench/conversion_confirmation.py)", "",
+            f"Written by `python bench/conversion_confirmation.py --runs {a.runs} --prefix {a.prefix} --methods "
+            f"{a.methods}` on {stamp}, code revision `{code_revision()}`, {platform.node()} ({platform.machine()}), "
+            f"{time.perf_counter() - t0:.0f} s.", "",
+            "Runs: fig1's own (one iteration of Algorithm 1, 2e4 epochs, T_h 32, T_a 31), each final policy rolled "
+            "out from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
+            "its own training instances and on the 50 test instances of test seed 0. Success: final distance within "
+            "the task's tolerance (5 cm). Cost / TO: on the training instances, the rollout's cost over TO's on the "
+            "same instance. The earlier confirmation (results version 2) is in confirmation_v2.md.", "",
+            "## Success per method, n_traj, conversion and instance set (mean over runs)", "",
+            summary.to_markdown(index=False, floatfmt=".3g"), "",
+            "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), ""]
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text("\n".join(text))
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
