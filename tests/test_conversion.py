@@ -170,7 +170,8 @@ def test_check_task_prints_a_noise_row_for_state_action_tasks():
                   ("inverse-dynamics", 0.01): (0.0, 0.0), ("tracking", 0.001): (1.0, 0.0),
                   ("tracking", 0.003): (0.9, 0.0), ("tracking", 0.01): (0.5, 0.0)})
     lines = noise_rows_text(quad, rows)
-    assert "inverse-dynamics (default) 100% / 50% / 0%: fragile; tracking 100% / 90% / 50%: tolerant" in lines[0]
+    assert quad.default_conversion == "tracking"          # the rule's verdict (results/tasks/conversion_rule.md)
+    assert "tracking (default) 100% / 90% / 50%: tolerant; inverse-dynamics 100% / 50% / 0%: fragile" in lines[0]
     assert lines[-1].startswith("noise  fragile:")
 
 
