@@ -113,6 +113,21 @@ def _solved_and_reached(rmeta: dict, d: dict, guess: str, ok: np.ndarray) -> flo
     return float(np.mean(reached))
 
 
+def _conversion_before_the_setting(rmeta: dict, pcfg: dict) -> str | None:
+    """The conversion of a rollout made before it was recorded: inverse dynamics for a chunked policy with
+    state actions, none for torques (MLPs, torque chunks)."""
+    if rmeta["config"].get("k_rollout") is None:
+        return None
+    from sdp_cli.tasks import get_task
+
+    try:
+        action = (pcfg.get("policy") or {}).get("action") or get_task(rmeta.get("task"),
+                                                                      **(rmeta.get("task_options") or {})).action
+    except SdpError:   # a task no longer registered: the row keeps an empty conversion
+        return None
+    return "inverse-dynamics" if action != "u" else None
+
+
 def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | None = None,
                    extra: dict | None = None) -> dict:
     """The summary of one run (a dict of scalars)."""
@@ -128,10 +143,10 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         "task": rmeta.get("task"), "method": rmeta.get("method"),
         "n_traj": (rmeta.get("policy_dataset") or {}).get("n_traj"), "epochs": rmeta.get("policy_epoch"),
         "t_a": rmeta["config"].get("t_a"), "k_rollout": rmeta["config"].get("k_rollout"),
-        # predicted chunk -> controls (sdp_cli.tasks.conversion): chunked policies only; rollouts made before the
-        # setting existed used inverse dynamics
-        "conversion": (rmeta["config"].get("conversion") or "inverse-dynamics"
-                       if rmeta["config"].get("k_rollout") is not None else None),
+        # predicted chunk -> controls (sdp_cli.tasks.conversion): state-action policies only (empty for torques);
+        # their rollouts made before the setting existed used inverse dynamics
+        "conversion": (rmeta["config"]["conversion"] if "conversion" in rmeta["config"]
+                       else _conversion_before_the_setting(rmeta, pcfg)),
         "horizon": horizon, "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),

@@ -64,9 +64,10 @@ class RolloutConfig:
             k = self.k_rollout if self.k_rollout is not None else policy.K
             if not 1 <= k <= policy.K:
                 raise SdpError(f"k_rollout must be in [1, K] = [1, {policy.K}], got {k}")
-            conversion = self.conversion or policy.task.default_conversion
+            # torque actions are played as they are: no conversion is used, none is recorded
+            conversion = (self.conversion or policy.task.default_conversion) if policy.task.action != "u" else None
             return RolloutConfig(self.n, self.seed, t_a, k, conversion)
-        return RolloutConfig(self.n, self.seed, 1, None, self.conversion)
+        return RolloutConfig(self.n, self.seed, 1, None, None)   # MLPs act with torques
 
 
 def evaluation_xis(task: Task, n: int, seed: int) -> np.ndarray:
