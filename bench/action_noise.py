@@ -65,8 +65,9 @@ def replay(policy, arrays: dict, to: np.ndarray, conversion: str | None = None) 
     return {"reached": ev["reached"], "ratio": ev["cost"] / to, "dist": ev["goal_distance"], "t_a": cfg.t_a}
 
 
-def fit_error(policy, arrays: dict, chunks: np.ndarray, scale: np.ndarray, stride: int) -> tuple[float, float]:
-    """RMS of ``(predicted - training chunk) / scale`` over rows ``T_o:`` and over the first row ``T_o``."""
+def fit_error(policy, arrays: dict, chunks: np.ndarray, scale: np.ndarray, stride: int) -> tuple[float, float, float]:
+    """RMS of ``e = (predicted - training chunk) / scale`` over rows ``T_o:``, over the first row ``T_o``, and of
+    its row-to-row part ``e[r+1] - e[r]`` (what white noise is: an error that changes from row to row)."""
     import torch
 
     from sdp_cli.rollout import instance_generators
@@ -82,7 +83,8 @@ def fit_error(policy, arrays: dict, chunks: np.ndarray, scale: np.ndarray, strid
                                         u_prev, generator=instance_generators(i, starts))
         errs.append((pred - chunks[i, starts]) / scale)
     e = np.concatenate(errs)[:, policy.T_o:]
-    return float(np.sqrt(np.mean(e ** 2))), float(np.sqrt(np.mean(e[:, 0] ** 2)))
+    return (float(np.sqrt(np.mean(e ** 2))), float(np.sqrt(np.mean(e[:, 0] ** 2))),
+            float(np.sqrt(np.mean(np.diff(e, axis=1) ** 2))))
 
 
 def summary(r: list[dict]) -> dict:
@@ -144,10 +146,10 @@ def main() -> None:
                             per.setdefault((conv, "block", name, sigma), []).append(r)
             for m, pol in policies.items():
                 data, _, _ = load_dataset(runs[m] / "it0" / "data.npz", require_gains=False)
-                rms, first = fit_error(pol, data, MemorizerPolicy(task, data, T_h).chunks, scale, a.stride)
+                rms, first, jitter = fit_error(pol, data, MemorizerPolicy(task, data, T_h).chunks, scale, a.stride)
                 for conv in convs:
                     fits.append({"task": task_name, "method": m, "seed": s, "conversion": conv, "chunk error RMS": rms,
-                                 "first row RMS": first, **summary([replay(pol, data, to_costs(task, data), conv)])})
+                                 "first row RMS": first, "row-to-row RMS": jitter, **summary([replay(pol, data, to_costs(task, data), conv)])})
         for (conv, kind, key, sigma), r in sorted(per.items(), key=lambda kv: (kv[0][0], kv[0][1],
                                                                                  kv[0][2] != "(x, u_prev, xi)", kv[0][3])):
             if kind == "block":
@@ -172,7 +174,9 @@ def main() -> None:
             by_block.to_markdown(index=False, floatfmt=".3g"), "",
             "## The trained policies: chunk error on their training chunks, and their own replay", "",
             f"Chunk error: RMS of (prediction - training chunk) in the same units, conditioned on the true state, "
-            f"every {a.stride}th start; rows after the inpainted history, and the first of them alone.", "",
+            f"every {a.stride}th start; rows after the inpainted history, the first of them alone, and the "
+            "row-to-row part (RMS of the change of the error from one row to the next; white noise of sigma has "
+            "sqrt(2) sigma).", "",
             fits.to_markdown(index=False, floatfmt=".3g"), ""]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text))

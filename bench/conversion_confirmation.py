@@ -9,6 +9,9 @@ loop's own evaluation set; its inverse-dynamics row must equal the run's eval.cs
 instances, where the memorizer reaches TO's cost.
 
     python bench/conversion_confirmation.py --runs runs/fig1 --prefix quadrotor-0-
+
+The file keeps what lies below its line `<!-- earlier confirmations -->` (the confirmations of earlier results
+versions, which the ledger cites); everything above it is this bench's.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+MARKER = "<!-- earlier confirmations -->"
 import pandas as pd
 
 
@@ -78,12 +83,16 @@ def main() -> None:
             "out from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
             "its own training instances and on the 50 test instances of test seed 0. Success: final distance within "
             "the task's tolerance (5 cm). Cost / TO: on the training instances, the rollout's cost over TO's on the "
-            "same instance. The earlier confirmation (results version 2) is in confirmation_v2.md.", "",
+            "same instance. The earlier confirmation (results version 2) is below.", "",
             "## Success per method, n_traj, conversion and instance set (mean over runs)", "",
             summary.to_markdown(index=False, floatfmt=".3g"), "",
             "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), ""]
+    earlier = ""
+    if a.out.is_file():
+        old = a.out.read_text()
+        earlier = old.split(MARKER, 1)[1] if MARKER in old else "\n" + old
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text("\n".join(text))
+    a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
     print(f"wrote {a.out}")
 
 
