@@ -15,7 +15,7 @@ _cap_cpu_kernels()
 #: sdp_cli/report/versions.py), and the DVC stage starts over (after moving the old folder aside, never
 #: deleting it) only runs of another results version or other settings. The literal below is what the report
 #: parses at an old revision: keep it an integer literal.
-RESULTS_VERSION = 4
+RESULTS_VERSION = 5
 
 #: What each results version changed (the ledger, results/PAPER.md, prints the entries newer than its oldest run).
 RESULTS_HISTORY = {
@@ -29,4 +29,8 @@ RESULTS_HISTORY = {
     3: "UR5 random targets kept 0.1 m inside the arm's reach (at most 0.85 m from the shoulder)",
     4: ("the trainer's fused AdamW and foreach EMA, and one-iteration runs trained in stacks (issue \"Many runs at "
         "once\": the same arithmetic rounded otherwise, so a seed's training takes another path)"),
+    5: ("the quadrotor's state-action policies turn their predicted chunks into thrusts by the tracking conversion "
+        "(a time-varying LQR around the chunk; before: one-step inverse dynamics of each row), its default by the "
+        "conversion rule (results/tasks/conversion_rule.md): collection warm starts and evaluations of quadrotor "
+        "loops change; other tasks' runs measure what they did (evaluation rows carry a conversion column)"),
 }
