@@ -281,7 +281,7 @@ class Run:
                 (f"; resuming at step {self.step}" if self.resumed else "") +
                 ("; --init's architecture replaces " + ", ".join(f"{k} {a!r} by {b!r}" for k, (a, b) in
                                                                   self.overridden.items())
-                 if getattr(self, "overridden", None) else ""))
+                 if self.overridden else ""))
 
 
 def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
@@ -294,8 +294,8 @@ def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str =
     asked = cfg.architecture()
     cfg, prev, init_ck = reconcile_config(cfg, ck_path, resume, init)
     # --init imposes its architecture: say which asked-for settings it replaced (describe())
-    overridden = {k: (v, cfg.architecture()[k]) for k, v in asked.items()
-                  if init_ck is not None and cfg.architecture()[k] != v}
+    got = cfg.architecture()
+    overridden = {k: (v, got[k]) for k, v in asked.items() if init_ck is not None and got[k] != v}
     arrays, meta, task, fingerprint = _load_data(data, cfg, prev, init_ck, ck_path)
     cfg = resolved_alpha(cfg, task)
     torch.manual_seed(cfg.seed)
