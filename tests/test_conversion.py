@@ -43,6 +43,50 @@ def test_riccati_gains_are_the_derivative_of_the_lqr_optimum():
     np.testing.assert_allclose(K[0], J, rtol=1e-10, atol=1e-12)
 
 
+def test_tracking_gains_are_the_closed_loop_sensitivity_on_the_quadrotor_at_hover():
+    """Around hover the tracking controller's first gain K_0 is the derivative of the optimal first control of the
+    nonlinear tracking problem it linearizes (same weights, same rows, the task's own dynamics) in the start state,
+    by central finite differences on the manifold of re-solves, to 1e-5 of the gains' scale. At a reference that
+    the dynamics meet exactly, the costates vanish, so the nonlinear problem's sensitivity is the LQR's."""
+    task = get_task("quadrotor-0")
+    S = 8
+    x_hover = task.initial_state(task.sample_xi(np.random.default_rng(0)))
+    x_hover[task.nq:] = 0.0
+    x_hover[3:7] = [0.0, 0.0, 0.0, 1.0]
+    acts = np.repeat(task.state_action(x_hover[None])[:, None], S, axis=1)          # (1, S, A): hold the hover
+    ctrl = TrackingController(task, x_hover[None], acts)
+    np.testing.assert_allclose(ctrl.u_ff[0], np.repeat(task.u_hover[None], S, 0), rtol=1e-9)
+    q_tol, u_scale = task.tracking_scales()
+    wq, wu = 1.0 / np.asarray(q_tol), 1.0 / np.asarray(u_scale)
+
+    def first_control(dx0):
+        x0 = task.integrate(x_hover, dx0)
+
+        def residuals(flat):
+            u, x, r = flat.reshape(S, task.nu), x0, []
+            for s in range(S):
+                r.append(wu * (u[s] - ctrl.u_ff[0, s]))
+                x = task.step(x, u[s])
+                r.append(wq * task.difference(ctrl.ref[0, s + 1], x))
+            return np.concatenate(r)
+
+        u = np.repeat(ctrl(x0[None], 0), S, 0).ravel()
+        for _ in range(8):                 # Gauss-Newton, Jacobian by central differences (independent of A, B)
+            h = 1e-6
+            J = np.stack([(residuals(u + h * e) - residuals(u - h * e)) / (2 * h) for e in np.eye(u.size)], axis=1)
+            step = np.linalg.lstsq(J, -residuals(u), rcond=None)[0]
+            u = u + step
+            if np.abs(step).max() < 1e-13:
+                break
+        return u[: task.nu]
+
+    eps = 1e-4
+    fd = np.stack([(first_control(eps * e) - first_control(-eps * e)) / (2 * eps) for e in np.eye(task.ndx)], axis=1)
+    K0 = ctrl.K[0, 0]
+    assert np.abs(K0).max() > 1.0                                   # the gains are not trivially zero
+    np.testing.assert_allclose(K0, fd, atol=1e-5 * np.abs(K0).max())
+
+
 @pytest.mark.parametrize("name", ["quadrotor-0", "ur5-rinit", "double_pendulum"])
 def test_tangent_step_jacobians_equal_finite_differences_on_the_manifold(name):
     task = get_task(name)
