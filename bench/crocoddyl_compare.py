@@ -21,13 +21,17 @@ multiple shooting (``get_solver``, tolerance 1e-6, gains off) and by crocoddyl (
 threshold 1e-9 on the stopping criterion); the cost of each solution is evaluated by *our* cost function
 (so both are measured by the same yardstick), and the best of ``--repeats`` wall times is kept.
 Prints one row per task and solver and the time ratio ours / crocoddyl.
+
+``--exchange IN OUT`` is bench/aligator_compare.py's crocoddyl side (:func:`exchange`).
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -118,7 +122,53 @@ def solve_croc(task, xi, kind: str, max_iter: int = 1000):
     return np.array(solver.xs), np.array(solver.us), bool(ok), int(solver.iter), wall
 
 
+def stop_measure(task, xi, X, U) -> float:
+    """crocoddyl 3.x's stopping measure at ``(X, U)``: ``|d1 + d2/2|``, the expected decrease of a full step
+    (one backward pass at that point, as its solve computes before testing ``th_stop``)."""
+    import crocoddyl
+
+    problem = croc_problem(task, xi)
+    solver = crocoddyl.SolverBoxFDDP(problem)
+    _KEEP.append(solver)
+    solver.setCandidate(list(np.asarray(X, dtype=float)), list(np.asarray(U, dtype=float)), True)
+    solver.computeDirection(True)
+    solver.updateExpectedImprovement()
+    d = solver.expectedImprovement()
+    return float(abs(d[0] + 0.5 * d[1]))
+
+
+def exchange(inp: str, out: str) -> None:
+    """bench/aligator_compare.py's crocoddyl side: BoxFDDP from each start of ``inp`` (JSON: task, xis, starts
+    [[X, U], ...], max_iter), its measure at each start, process CPU time per solve; written to ``out``."""
+    import json
+
+    from sdp_cli.tasks import get_task
+
+    job = json.loads(Path(inp).read_text())
+    task = get_task(job["task"])
+    rows = []
+    for xi, (X0, U0) in zip(job["xis"], job["starts"]):
+        xi = np.asarray(xi)
+        problem = croc_problem(task, xi)
+        import crocoddyl
+
+        solver = crocoddyl.SolverBoxFDDP(problem)
+        _KEEP.append(solver)
+        solver.th_stop = 1e-9
+        t0 = time.process_time()
+        ok = solver.solve([np.asarray(x, dtype=float) for x in X0], [np.asarray(u, dtype=float) for u in U0],
+                          int(job["max_iter"]), False)
+        cpu = time.process_time() - t0
+        rows.append({"converged": bool(ok), "iterations": int(solver.iter), "time": cpu,
+                     "X": np.array(solver.xs).tolist(), "U": np.array(solver.us).tolist(),
+                     "stop_at_start": stop_measure(task, xi, X0, U0)})
+    Path(out).write_text(json.dumps({"rows": rows}))
+
+
 def main() -> None:
+    if len(sys.argv) == 4 and sys.argv[1] == "--exchange":
+        exchange(sys.argv[2], sys.argv[3])
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tasks", default="pendulum,double_pendulum,ur5-fixed")
     ap.add_argument("--n", type=int, default=10)
