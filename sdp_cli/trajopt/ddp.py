@@ -24,7 +24,8 @@ Algorithm (our implementation, read from the papers; no crocoddyl or aligator co
   is accepted when the actual cost decrease is >= ``ACCEPT`` x the expected one, or, where the model predicts
   an increase (closing gaps can cost), when the increase is at most ``ACCEPT_NEG`` x the predicted one.
 - **Stopping rule, "converged"**: the iterate is feasible (every gap <= ``GAP_TOL``) and the squared norm of
-  the free part of ``Q_u`` summed over the horizon (the reduced gradient: crocoddyl's stopping criterion) is
+  the free part of ``Q_u`` summed over the horizon (the reduced gradient; the measure of crocoddyl's
+  ``stoppingCriteria()``, not the ``abs(d1 + d2/2)`` crocoddyl 3.x's solve stops on: docs/trajopt.md) is
   <= ``tol`` (default ``STOP_TOL``); a solve that reaches ``max_iter`` (default 1000) iterations, or
   ``REG_MAX``, is "not converged", its last iterate returned.
 
