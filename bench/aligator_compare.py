@@ -246,8 +246,10 @@ def main() -> None:
     from sdp_cli.tasks import get_task
 
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    text = [f"`python bench/aligator_compare.py --n {a.n} --tasks {a.tasks}` on {stamp}, code revision "
-            f"`{code_revision()}`, {platform.node()} ({platform.machine()}, {os.cpu_count()} CPUs, shared); "
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          cwd=ROOT).stdout.strip()
+    text = [f"`python bench/aligator_compare.py --n {a.n} --tasks {a.tasks}` on {stamp}, commit `{head}` (package "
+            f"code `{code_revision()[:12]}`), {platform.node()} ({platform.machine()}, {os.cpu_count()} CPUs, shared); "
             "libaligator 0.19.1, crocoddyl 3.2.1, pinocchio 4.0.0 on the reference side.", ""]
     checks, tables, cross = [], [], []
     for name in a.tasks.split(","):

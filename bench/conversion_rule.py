@@ -1,4 +1,4 @@
-"""The conversion rule: which conversion of predicted chunks forgives a nearly right learner (sdp_cli/tasks/noise.py).
+"""The conversion rule: which conversion of predicted chunks forgives a nearly right learner (sdp_cli/checks/noise.py).
 
 For each state-action task: TO optima from the naive guess on 8 training instances x 3 collection seeds (as
 `sdp collect --seed S` draws them), the memorizer of their chunks with white noise of sigma 0, 0.001, 0.003 and
@@ -34,8 +34,8 @@ def main() -> None:
     torch.set_num_threads(1)
     from sdp_cli.data.artifacts import code_revision
     from sdp_cli.tasks import get_task
-    from sdp_cli.tasks.contract import pipeline_cases, solve_instances
-    from sdp_cli.tasks.noise import RULE_SIGMAS, TOLERANT_SIGMA, TOLERANT_SUCCESS, rule_verdict, tolerance_table
+    from sdp_cli.checks.contract import pipeline_cases, solve_instances
+    from sdp_cli.checks.noise import RULE_SIGMAS, TOLERANT_SIGMA, TOLERANT_SUCCESS, rule_verdict, tolerance_table
 
     seeds = [int(s) for s in a.seeds.split(",")]
     tables, verdicts = [], []
@@ -63,7 +63,7 @@ def main() -> None:
             f"plays (sigma in normalized action units: 1.0 = a coordinate's half-range over the dataset; "
             f"{a.draws} draws per sigma > 0), rolled out on its own instances at each (T_h, T_a) the pipelines "
             "use, under each conversion (sdp_cli/tasks/conversion.py). Success: final distance within the task's "
-            "tolerance. The rule (sdp_cli/tasks/noise.py, fixed before this ran): a conversion is admissible when "
+            "tolerance. The rule (sdp_cli/checks/noise.py, fixed before this ran): a conversion is admissible when "
             "it reproduces TO's cost at sigma 0; the default is the paper's where the paper fixes it (UR5), else "
             f"the admissible conversion with the higher success summed over sigma "
             f"{', '.join(f'{s:g}' for s in RULE_SIGMAS)}; tolerant: success >= {TOLERANT_SUCCESS:.0%} at sigma "

@@ -1,7 +1,7 @@
 """Is every task well-posed for a policy that does not see time? Writes results/tasks/timing.md.
 
 For each registered task, TO optima from the naive guess on ``--n`` instances (``sdp collect``'s
-instances of seed 0), measured by :func:`sdp_cli.tasks.timing.optimum_timing`: when the optimum enters
+instances of seed 0), measured by :func:`sdp_cli.checks.timing.optimum_timing`: when the optimum enters
 the goal tolerance for good (``t_in``) and is at rest (``t_rest``, ``||v|| <= 0.05``), its speed and
 distance at ``T``, and the cost of playing its own actions k steps late / early relative to its cost.
 Rule (decided before the runs, issue "A perfect learner..."): well-posed when one step late costs
@@ -23,8 +23,8 @@ import pandas as pd
 
 from sdp_cli.data.artifacts import code_revision
 from sdp_cli.tasks import get_task, task_names
-from sdp_cli.tasks.contract import solve_instances
-from sdp_cli.tasks.timing import REST_SPEED, SHIFTS, WELL_POSED_LATE_RATIO, optimum_timing
+from sdp_cli.checks.contract import solve_instances
+from sdp_cli.checks.timing import REST_SPEED, SHIFTS, WELL_POSED_LATE_RATIO, optimum_timing
 
 UR5_REST_BY = 63   # the largest T_a UR5's pipelines use: at rest from T - 63
 

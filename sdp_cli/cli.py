@@ -345,7 +345,7 @@ def check_task_cmd(
 ) -> None:
     """Check a task's contract before training on it: dynamics, derivatives vs finite differences, oracle
     replay, the memorizer (a perfect learner must score TO's cost) and the timing of its optimum."""
-    from sdp_cli.tasks.contract import check_task
+    from sdp_cli.checks.contract import check_task
 
     n = check_task(task, n_traj, cases, solve, echo=typer.echo)
     typer.echo(f"task {task!r} passes all {n} checks")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sdp_cli.tasks import get_task
-from sdp_cli.tasks.contract import MEMORIZER_RTOL, manifold_fd, memorizer_rollouts, solve_instances
+from sdp_cli.checks.contract import MEMORIZER_RTOL, manifold_fd, memorizer_rollouts, solve_instances
 from sdp_cli.tasks.conversion import TrackingController, riccati_gains
 
 
@@ -188,7 +188,7 @@ def _rows(table: dict) -> list[dict]:
 
 
 def test_the_rule_picks_the_admissible_conversion_that_forgives_more():
-    from sdp_cli.tasks.noise import rule_verdict
+    from sdp_cli.checks.noise import rule_verdict
 
     quad, ur5 = get_task("quadrotor-0"), get_task("ur5-rinit")
     rows = _rows({("inverse-dynamics", 0.0): (1.0, 1e-9), ("inverse-dynamics", 0.001): (1.0, 0.1),
@@ -208,7 +208,7 @@ def test_the_rule_picks_the_admissible_conversion_that_forgives_more():
 
 
 def test_check_task_prints_a_noise_row_for_state_action_tasks():
-    from sdp_cli.tasks.noise import noise_rows_text
+    from sdp_cli.checks.noise import noise_rows_text
 
     quad = get_task("quadrotor-0")
     rows = _rows({("inverse-dynamics", 0.001): (1.0, 0.0), ("inverse-dynamics", 0.003): (0.5, 0.0),
@@ -224,7 +224,7 @@ def test_check_task_prints_a_noise_row_for_state_action_tasks():
 def test_the_noise_rule_on_the_quadrotor_memorizer():
     """The rule's study at a reduced size (4 instances of one collection seed, 1 draw): both conversions are
     admissible on quadrotor-0 and the verdict names one of them."""
-    from sdp_cli.tasks.noise import rule_verdict, tolerance_table
+    from sdp_cli.checks.noise import rule_verdict, tolerance_table
 
     task = get_task("quadrotor-0")
     rows = tolerance_table(task, [solve_instances(task, 4)], [(32, 31)], draws=1)

@@ -81,3 +81,29 @@ def test_no_import_cycles():
     graph = import_graph()
     assert "sdp_cli.solve_jobs" in graph["sdp_cli.collect"] and "sdp_cli.solve_jobs" in graph["sdp_cli.refine"]
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
+
+
+def package_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The module graph collapsed to ``sdp_cli``'s first level: a sub-package (``sdp_cli.tasks``) or a module."""
+    def top(m: str) -> str:
+        return ".".join(m.split(".")[:2])
+
+    out: dict[str, set[str]] = {}
+    for m, deps in graph.items():
+        out.setdefault(top(m), set()).update(top(d) for d in deps if top(d) != top(m))
+    return out
+
+
+def test_packages_have_no_import_cycle_and_tasks_import_nothing_above_them():
+    """tasks/ is the domain layer: it may use the casadi transcription of Pinocchio (sdp_cli.dynamics) and the
+    project's error type, nothing that uses tasks (the policies, data, rollout, solve jobs, optimizers, checks)."""
+    packages = package_graph(import_graph())
+    assert find_cycle(packages) is None, " -> ".join(find_cycle(packages))
+    assert packages["sdp_cli.tasks"] <= {"sdp_cli.dynamics", "sdp_cli.errors"}, sorted(packages["sdp_cli.tasks"])
+    assert "sdp_cli.tasks" in packages["sdp_cli.checks"]      # the check-task orchestration lives above tasks/
+
+
+def test_package_graph_sees_an_upward_import():
+    graph = {"sdp_cli.tasks.base": {"sdp_cli.rollout"}, "sdp_cli.rollout": {"sdp_cli.tasks.base"}}
+    assert package_graph(graph) == {"sdp_cli.tasks": {"sdp_cli.rollout"}, "sdp_cli.rollout": {"sdp_cli.tasks"}}
+    assert find_cycle(package_graph(graph)) is not None

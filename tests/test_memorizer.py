@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from sdp_cli.data.chunks import ChunkDataset
 from sdp_cli.tasks import get_task, task_names
-from sdp_cli.tasks.contract import (MEMORIZER_RTOL, memorizer_costs, pipeline_cases, pipeline_chunk_cases,
+from sdp_cli.checks.contract import (MEMORIZER_RTOL, memorizer_costs, pipeline_cases, pipeline_chunk_cases,
                                    solve_instances)
 
 ROOT = Path(__file__).resolve().parents[1]

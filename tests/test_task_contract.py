@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.tasks import _REGISTRY, get_task, register, task_names
-from sdp_cli.tasks.contract import action_rows, model_rows
+from sdp_cli.checks.contract import action_rows, model_rows
 from toy_tasks import TurntableTask
 
 CASES = [(name, a) for name in task_names() for a in get_task(name).accepted_actions]
@@ -24,7 +24,7 @@ def failed(rows):
 
 
 def check_task(task: Task) -> None:
-    """The checks `sdp check-task --no-solve` runs (sdp_cli.tasks.contract.model_rows)."""
+    """The checks `sdp check-task --no-solve` runs (sdp_cli.checks.contract.model_rows)."""
     assert not failed(model_rows(task)), failed(model_rows(task))
 
 

@@ -138,7 +138,7 @@ class QuadrotorTask(StartGoalTask):
     """Hector quadrotor flying to a goal at the same height among vertical columns."""
 
     action = "x"
-    #: the conversion rule's verdict (sdp_cli/tasks/noise.py; results/tasks/conversion_rule.md, 2026-12-06): the
+    #: the conversion rule's verdict (sdp_cli/checks/noise.py; results/tasks/conversion_rule.md, 2026-12-06): the
     #: memorizer with chunk noise reaches the goal more often under tracking (success summed over sigma 0.001,
     #: 0.003, 0.01: 3.58 against 2.19 on quadrotor-0, 3.21 against 1.50 on quadrotor-9); both replay TO at zero
     #: noise. The paper does not fix the quadrotor's conversion.

@@ -10,7 +10,7 @@ Each check gives a row ``{"check", "ok", "value", "limit"}``:
   controls simulated from x0 reproduce the stored states), the *memorizer* (the nearest training chunk,
   :class:`sdp_cli.policy.memorizer.MemorizerPolicy`, rolled out with the rollout's own conventions at each
   (T_h, T_a) reproduces TO's cost to :data:`MEMORIZER_RTOL`), and the timing of the optimum
-  (:mod:`sdp_cli.tasks.timing`: one step late costs at most 2x).
+  (:mod:`sdp_cli.checks.timing`: one step late costs at most 2x).
 
 ``tests/test_task_contract.py`` and ``tests/test_memorizer.py`` call the same functions.
 """
@@ -153,7 +153,7 @@ def memorizer_costs(task: Task, arrays: dict, T_h: int, T_a: int, conversion: st
 def optimum_rows(task: Task, cases, n_traj: int = 2, arrays: dict | None = None) -> tuple[list[dict], list[dict]]:
     """Oracle replay, the memorizer at each ``(T_h, T_a)`` of ``cases`` and the timing of the optima:
     ``(rows, timing records)``."""
-    from sdp_cli.tasks.timing import WELL_POSED_LATE_RATIO, optimum_timing
+    from sdp_cli.checks.timing import WELL_POSED_LATE_RATIO, optimum_timing
 
     arrays = arrays if arrays is not None else solve_instances(task, n_traj)
     to = np.array([task.cost(X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])])
@@ -228,7 +228,7 @@ def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool
         arrays = solve_instances(t, n_traj)
         rows += optimum_rows(t, pairs, n_traj, arrays)[0]
         if t.action != "u":   # how much chunk error each conversion forgives (informs; never fails the check)
-            from sdp_cli.tasks.noise import noise_rows_text, tolerance_table
+            from sdp_cli.checks.noise import noise_rows_text, tolerance_table
 
             noise = noise_rows_text(t, tolerance_table(t, [arrays], pairs))
     width = max(len(r["check"]) for r in rows)
