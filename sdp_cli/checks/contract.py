@@ -171,20 +171,20 @@ def optimum_rows(task: Task, cases, n_traj: int = 2, arrays: dict | None = None)
 
 def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
     """``(task, T_h, T_a)`` of every chunked policy the experiments in ``root/pipelines`` roll out: the
-    collection warm starts (``t_a``, default ``T_h - 1``) and every evaluated T_a."""
-    import yaml
-
-    from sdp_cli.experiment import GROUP_DEFAULTS, PIPELINES_DIR, group_items
+    collection warm starts (``t_a``, default ``T_h - T_o``) and every evaluated T_a; each run's settings as
+    ``sdp pipeline`` resolves them (:func:`sdp_cli.pipeline.loop_configs`, group defaults included)."""
+    from sdp_cli.experiment import PIPELINES_DIR, load_experiment
+    from sdp_cli.pipeline import loop_configs
     from sdp_cli.policy.registry import get_method
 
     out = set()
     for path in sorted((root / PIPELINES_DIR).glob("*.yaml")):
-        for _, g in group_items(yaml.safe_load(path.read_text()) or {"groups": []}):
-            g = {**GROUP_DEFAULTS, **g}
-            if not any(get_method(m).chunked for m in g["methods"]):
+        for cfg in loop_configs(path.stem, load_experiment(path.stem, root)).values():
+            if not get_method(cfg.train.method).chunked:
                 continue
-            h = int(g["horizon"])
-            out |= {(g["task"], h, int(t_a)) for t_a in {g["t_a"] or h - 1, *g["eval_t_a"], *g["eval_t_a_last"]}}
+            h, r = int(cfg.train.policy.horizon), cfg.rollout
+            t_a = r.t_a if r.t_a is not None else h - int(cfg.train.policy.n_obs_steps)
+            out |= {(cfg.task, h, int(v)) for v in {t_a, *r.eval_t_a, *r.eval_t_a_last}}
     return out
 
 
