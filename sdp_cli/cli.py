@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
                                  ToOpt, WorkersOpt, with_train_options, clean_errors, int_list, set_threads, task_help)
 from sdp_cli.errors import SdpError
@@ -72,7 +73,7 @@ def collect_cmd(
     conversion: Annotated[Optional[str], typer.Option(help="With --policy: how its predicted chunks become "
                                                            "controls (inverse-dynamics or tracking; default: the "
                                                            "task's).")] = None,
-    to: ToOpt = "ms",
+    to: ToOpt = DEFAULT_TO,
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
     threads: ThreadsOpt = 1,
@@ -140,7 +141,7 @@ def refine_cmd(
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     baseline: Annotated[bool, typer.Option("--baseline/--no-baseline", help="Also solve from the naive guess (TO alone) and keep the better (ArgminCost).")] = True,
     single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Also report a second NLP baseline, single shooting solved by IPOPT, from the policy's and the naive controls (not kept in the dataset).")] = False,
-    to: ToOpt = "ms",
+    to: ToOpt = DEFAULT_TO,
     workers: WorkersOpt = None,
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
@@ -249,7 +250,7 @@ def loop_cmd(
     test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
-    to: ToOpt = "ms",
+    to: ToOpt = DEFAULT_TO,
     workers: WorkersOpt = None,
     device: DeviceOpt = "auto",
     executor: ExecutorOpt = None,

@@ -26,6 +26,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import (artifact_writes, atomic_write_bytes, check_writable, load_npz, portable_path, save_npz,
                                     split_timing)
 from sdp_cli.errors import SdpError
@@ -52,8 +53,8 @@ class CollectConfig:
     k_rollout: int | None = field(default=None, metadata=rule(ge=1))
     #: with a policy: how its predicted chunks become controls (sdp_cli.tasks.conversion; None: the task's)
     conversion: str | None = None
-    #: the TO family (sdp_cli.trajopt.TO_FAMILIES): "ms" (fatrop) or "ddp" (box-FDDP, the paper's)
-    to: str = "ms"
+    #: the TO family (sdp_cli.families): "ms" (DEFAULT_TO: fatrop) or "ddp" (box-FDDP, the paper's)
+    to: str = DEFAULT_TO
 
     def __post_init__(self):
         from sdp_cli.seeds import check_seed
@@ -78,7 +79,7 @@ class CollectConfig:
         """The part of the config that partial results must agree on (not the caps)."""
         ident = {"task": self.task, "seed": self.seed, "max_iter": self.max_iter,
                  "task_options": dict(sorted(self.task_options.items()))}
-        if self.to != "ms":   # (partial results of collections made before --to existed stay valid)
+        if self.to != DEFAULT_TO:   # (partial results of collections made before --to existed stay valid)
             ident["to"] = self.to
         if self.policy is not None:
             ident.update(policy=self.policy_fingerprint, t_a=self.t_a, k_rollout=self.k_rollout)

@@ -32,11 +32,12 @@ import numpy as np
 import pandas as pd
 import torch
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.registry import get_method
 
 
-def to_reference(task: str, to: str = "ms") -> tuple[float, float]:
+def to_reference(task: str, to: str = DEFAULT_TO) -> tuple[float, float]:
     """Reference seconds per solve of ``task``: (the loop's TO, single shooting); the loop's TO is multiple
     shooting (:attr:`Task.reference_solve_s`) or, ``to="ddp"``, box-FDDP where the task gives its time
     (:attr:`Task.reference_ddp_s`)."""
@@ -276,8 +277,9 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
             for t_a in t_as * (1 + len(cfg.save_at)):   # the final checkpoint and the save_at ones
                 if ro.eval_refine:
                     r["to_s"] += 2 * ro.n_test * ms + (2 * ro.n_test * ss if ro.single_shooting else 0.0)
-                t_a = t_a or max(1, st.T_h - 1)
-                calls = (math.ceil(task.T / t_a) * 5) if get_method(st.method).chunked else task.T
+                t_a = t_a or max(1, cfg.train.policy.max_t_a)
+                k = ro.k_rollout or cfg.train.policy.diffusion_steps   # network calls per replanning
+                calls = (math.ceil(task.T / t_a) * k) if get_method(st.method).chunked else task.T
                 r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))
     if "stack" in df:

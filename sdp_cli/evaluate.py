@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.argmin import policy_outcomes
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
@@ -185,7 +186,7 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
                         np.where(d["inst_winner"] == 1, d["inst_base_cost"], np.nan))
         row.update({
             # the TO family of the refinement and of TO alone (sdp_cli.trajopt.TO_FAMILIES; before --to: ms)
-            "to": (dmeta.get("config") or {}).get("to", "ms"),
+            "to": (dmeta.get("config") or {}).get("to", DEFAULT_TO),
             # the paper's "refined": TO warm-started by the policy's rollout (Algorithm 1 line 7)
             "refined_cost_mean": _mean(np.where(pol_ok, d["inst_pol_cost"], np.nan)),
             "refined_converged_rate": float(np.mean(pol_ok)),

@@ -11,13 +11,14 @@ from pathlib import Path
 
 import yaml
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.errors import SdpError
 
 PIPELINES_DIR = Path("pipelines")
 GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
                   "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50,
                   "test_seed": 0, "max_iter": 1000, "single_shooting": False, "train": {}, "tag": None,
-                  "n_traj_schedule": None, "to": "ms", "conversion": None}
+                  "n_traj_schedule": None, "to": DEFAULT_TO, "conversion": None}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:

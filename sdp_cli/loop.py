@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
@@ -76,7 +77,7 @@ class LoopConfig:
     n_traj: tuple = field(default=(30,), metadata=rule(ge=1))  # per iteration; the last value repeats
     reset_buffer: bool = True
     max_iter: int = field(default=1000, metadata=rule(ge=1))
-    to: str = "ms"                 # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
+    to: str = DEFAULT_TO           # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
     workers: int | None = None
     device: str = "cpu"
     executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
@@ -129,7 +130,7 @@ class LoopConfig:
         if tcfg.is_diffusion:
             if self.horizon > task.T + 1:
                 raise SdpError(f"horizon {self.horizon} is longer than the task's T + 1 = {task.T + 1}")
-            hi = self.horizon - tcfg.policy.n_obs_steps
+            hi = tcfg.policy.max_t_a
             for name, values in (("t_a", () if r.t_a is None else (r.t_a,)), ("eval_t_a", r.eval_t_a),
                                  ("eval_t_a_last", r.eval_t_a_last)):
                 bad = [v for v in values if not 1 <= v <= hi]

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.argmin import (TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost,  # noqa: F401 (re-exported)
                             policy_outcomes)
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
@@ -41,7 +42,7 @@ class RefineStats:
 def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 1000,
            baseline: bool = True, single_shooting: bool = False, workers: int | None = None,
            progress: Callable[[int], None] | None = None, executor: "str | Executor" = "local",
-           scheduler: str | None = None, to: str = "ms") -> tuple[Path, RefineStats]:
+           scheduler: str | None = None, to: str = DEFAULT_TO) -> tuple[Path, RefineStats]:
     """Refine every rollout of an artifact; write a dataset artifact to ``out``.
 
     ``progress(done, n)`` is called after each instance. ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.argmin import TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes  # noqa: F401
 from sdp_cli.tasks import Task, get_task
 
@@ -25,7 +26,7 @@ def sample_xi(task: Task, seed: int, index: int) -> np.ndarray:
     return task.sample_xi(np.random.default_rng([int(seed), int(index)]))
 
 
-def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int, to: str = "ms") -> dict:
+def solve_index(task_name: str, task_options: dict, seed: int, index: int, max_iter: int, to: str = DEFAULT_TO) -> dict:
     """Solve instance ``index`` from the naive guess with TO family ``to``; a dict of arrays (picklable)."""
     return solve_indices(task_name, task_options, seed, [index], max_iter, to)[0]
 
@@ -55,7 +56,7 @@ def job_chunks(items: list, to: str) -> list[list]:
 
 
 def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[int], max_iter: int,
-                  to: str = "ms") -> list[dict]:
+                  to: str = DEFAULT_TO) -> list[dict]:
     """:func:`solve_index` of several indices in one job; with ``to="ddp"`` one DDP batch."""
     from sdp_cli.trajopt import get_to_solver
 
@@ -66,7 +67,7 @@ def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[i
     return [_solve_record(r, xi, i) for r, xi, i in zip(results, xis, indices)]
 
 
-def warm_solver(task_name: str, task_options: dict, max_iter: int, to: str = "ms") -> int:
+def warm_solver(task_name: str, task_options: dict, max_iter: int, to: str = DEFAULT_TO) -> int:
     """Build (or reuse) this process's solver of the task; the process's build count (NLP solvers)."""
     from sdp_cli.trajopt import build_count, get_to_solver
 
@@ -120,7 +121,7 @@ def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_i
 
 def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: np.ndarray,
                     U_pol: np.ndarray, max_iter: int, baseline: bool, single_shooting: bool = False,
-                    to: str = "ms") -> dict:
+                    to: str = DEFAULT_TO) -> dict:
     """Solve one instance from the policy guess (and the naive guess) with TO family ``to``; picklable dict out.
 
     ``single_shooting``: also solve both with the single-shooting baseline (``ss_*`` records; reported,
@@ -130,7 +131,7 @@ def refine_instance(task_name: str, task_options: dict, xi: np.ndarray, X_pol: n
 
 
 def refine_instances(task_name: str, task_options: dict, xis, X_pols, U_pols, max_iter: int, baseline: bool,
-                     single_shooting: bool = False, to: str = "ms") -> list[dict]:
+                     single_shooting: bool = False, to: str = DEFAULT_TO) -> list[dict]:
     """:func:`refine_instance` of several instances in one job; with ``to="ddp"`` the policy guesses are solved as
     one DDP batch and the naive guesses as another (the same results as one by one)."""
     from sdp_cli.trajopt import get_to_solver
@@ -185,7 +186,7 @@ def _refine_record(task, xi, X_pol, U_pol, usable: bool, pol, base, max_iter: in
     return rec
 
 
-def refine_indices(task_name, task_options, indices, xis, X_pols, U_pols, max_iter, to: str = "ms") -> list[dict]:
+def refine_indices(task_name, task_options, indices, xis, X_pols, U_pols, max_iter, to: str = DEFAULT_TO) -> list[dict]:
     """:func:`refine_instances` labelled with their sample indices (``sdp collect --policy``); one DDP batch with
     ``to="ddp"``."""
     recs = refine_instances(task_name, task_options, xis, X_pols, U_pols, max_iter, baseline=True, to=to)

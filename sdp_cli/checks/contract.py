@@ -183,7 +183,7 @@ def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
             if not get_method(cfg.train.method).chunked:
                 continue
             h, r = int(cfg.train.policy.horizon), cfg.rollout
-            t_a = r.t_a if r.t_a is not None else h - int(cfg.train.policy.n_obs_steps)
+            t_a = r.t_a if r.t_a is not None else cfg.train.policy.max_t_a
             out |= {(cfg.task, h, int(v)) for v in {t_a, *r.eval_t_a, *r.eval_t_a_last}}
     return out
 

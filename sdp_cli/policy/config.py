@@ -59,6 +59,12 @@ class PolicyConfig:
     mlp_hidden: list[int] = opt(help="Hidden layer sizes of the MLP baselines, comma-separated.",
                                 factory=lambda: [256, 256, 256], ge=1)
 
+    @property
+    def max_t_a(self) -> int:
+        """``T_h - T_o``: the rows a chunk plans after its observed ones, the largest T_a of a chunked
+        policy and T_a's default (Algorithm 2; every module that needs the default asks here)."""
+        return self.horizon - self.n_obs_steps
+
 
 @dataclass
 class DataConfig:

@@ -15,6 +15,8 @@ import re
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO, TO_NAMES
+
 
 def mean_ci(values: pd.Series) -> tuple[float, float, int]:
     """Mean and 95% confidence half-width (normal approximation over seeds) of finite values;
@@ -98,15 +100,15 @@ def split_conversion(method: str) -> tuple[str, str | None]:
 
 
 #: how reports name a TO family (``to`` of the evaluations); ``ms`` is the main one
-TO_FAMILIES = {"ms": "fatrop", "ddp": "box-FDDP"}
+TO_FAMILIES = TO_NAMES
 
 
 def to_family(df: pd.DataFrame) -> pd.Series:
     """Each row's TO family, the loop's TO (column ``to``: ``ddp`` for box-FDDP); ``ms`` (fatrop's multiple
     shooting) where the column is empty or absent (runs made before the DDP solver existed)."""
     if "to" not in df:
-        return pd.Series("ms", index=df.index, dtype=object)
-    return df["to"].astype(object).where(df["to"].notna(), "ms").astype(str)
+        return pd.Series(DEFAULT_TO, index=df.index, dtype=object)
+    return df["to"].astype(object).where(df["to"].notna(), DEFAULT_TO).astype(str)
 
 
 def newest_version(df: pd.DataFrame) -> pd.DataFrame:
@@ -137,7 +139,7 @@ def split_family(method: str) -> tuple[str, str | None]:
 
 def family_of(method: str) -> str:
     """The TO family of a drawn variant (``sdp-to-ddp`` -> ``ddp``; no suffix: ``ms``)."""
-    return split_family(method)[1] or "ms"
+    return split_family(method)[1] or DEFAULT_TO
 
 
 def plain_method(method: str) -> str:

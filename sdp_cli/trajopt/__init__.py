@@ -12,11 +12,10 @@ TO families (``--to``): ``ms`` (ours: multiple shooting, fatrop; :func:`get_solv
 box-FDDP, :mod:`sdp_cli.trajopt.ddp`); :func:`get_to_solver` returns either with the same ``solve`` API.
 """
 
+from sdp_cli.families import DEFAULT_TO, TO_FAMILIES
 from sdp_cli.trajopt.solver import (DEFAULT_MAX_ITER, DEFAULT_SOLVER, SOLVERS, SolveResult, TrajOptSolver,
                                     build_count, get_solver)
 
-#: the TO families: multiple shooting (fatrop) and box-FDDP
-TO_FAMILIES = ("ms", "ddp")
 
 
 def check_to(to: str) -> None:
@@ -27,7 +26,7 @@ def check_to(to: str) -> None:
         raise SdpError(f"--to must be one of {', '.join(TO_FAMILIES)}; got {to!r}")
 
 
-def get_to_solver(task, to: str = "ms", max_iter: int = DEFAULT_MAX_ITER):
+def get_to_solver(task, to: str = DEFAULT_TO, max_iter: int = DEFAULT_MAX_ITER):
     """The solver of TO family ``to`` for ``task`` (cached per process)."""
     check_to(to)
     if to == "ddp":

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci, method_label
 from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_order,
@@ -64,7 +65,7 @@ def fig1(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
     # the claim is read, drew them as one line at 300x)
     log_y = low > 0 and high * 1.3 / low > 30
     top = high * (4 if log_y else 1.3)   # the ∞ rows: a band above every mean (a factor 1.3 is 0.1 decade)
-    families = sorted(set(tab.method.map(family_of)), key=lambda f: (f != "ms", f))
+    families = sorted(set(tab.method.map(family_of)), key=lambda f: (f != DEFAULT_TO, f))
     plt = pyplot()
     fig, axes = plt.subplots(len(families), 2, figsize=(10, 4 * len(families)), squeeze=False,
                              gridspec_kw={"width_ratios": [3, 2]})
@@ -184,7 +185,7 @@ def fig2a(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
                             color=COLORS.get(method, among=methods))
     if np.isfinite(to):
         ax.axhline(to, color="black", ls="-.", lw=1)
-    family_lines = {f: ("black" if f == "ms" else "0.55") for f in to_by} if len(to_by) > 1 else {}
+    family_lines = {f: ("black" if f == DEFAULT_TO else "0.55") for f in to_by} if len(to_by) > 1 else {}
     for f, v in to_by.items():
         if family_lines and np.isfinite(v):
             ax.axhline(v, color=family_lines[f], ls="-.", lw=1)
@@ -283,12 +284,12 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         return []
     tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)
     fam = tab.method.map(family_of)
-    loop_to = (tab.solver == "multiple shooting") & (fam != "ms")   # the loop's TO is another family's solver
+    loop_to = (tab.solver == "multiple shooting") & (fam != DEFAULT_TO)   # the loop's TO is another family's solver
     tab.loc[loop_to, "solver"] = fam[loop_to].map(lambda f: TO_FAMILIES.get(f, f))
     from matplotlib.lines import Line2D
 
     plt = pyplot()
-    order = ["multiple shooting", *(v for k, v in TO_FAMILIES.items() if k != "ms"), "single shooting"]
+    order = ["multiple shooting", *(v for k, v in TO_FAMILIES.items() if k != DEFAULT_TO), "single shooting"]
     solvers = [s for s in order if s in set(tab.solver)] + sorted(set(tab.solver) - set(order))
     fig, axes = plt.subplots(1, len(solvers), figsize=(6 * len(solvers), 4), squeeze=False)
     hi = max(int(tab.iterations.max()), 1)
@@ -301,8 +302,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
         f = min(t.method.map(family_of))
         base = _to_alone_once(t[t.method.map(family_of) == f])
         *_, base_patches = ax.hist(base, bins=bins, weights=np.full(len(base), 1 / max(len(base), 1)),
-                                   histtype="stepfilled", color="0.85" if f == "ms" else "0.65", edgecolor="0.4",
-                                   lw=1.2, alpha=1 if f == "ms" else 0.6,
+                                   histtype="stepfilled", color="0.85" if f == DEFAULT_TO else "0.65", edgecolor="0.4",
+                                   lw=1.2, alpha=1 if f == DEFAULT_TO else 0.6,
                                    label=f"TO alone (naive guess, {len(base)} instances), mean {base.mean():.0f}")
         pol = t[t.guess == "policy"]
         groups = sorted(pol.groupby("method"), key=lambda x: method_order(x[0]))

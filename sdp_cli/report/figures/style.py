@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.report.rows import split_family, ta_pair
 
@@ -26,7 +27,7 @@ class _Shades(dict):
         base, family = split_family(key)
         if family:    # a TO-family variant: its method's, lighter for a family other than ours (ms)
             value = self.get(base, default, among=[split_family(a)[0] for a in among])
-            if not self.shade or value is None or family == "ms":
+            if not self.shade or value is None or family == DEFAULT_TO:
                 return value
             import matplotlib.colors as mc
 

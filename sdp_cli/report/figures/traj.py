@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.figures.paper import _named
 from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, method_label, split_family
@@ -73,8 +74,8 @@ def traj_parts(df: pd.DataFrame, task: str) -> list[tuple[str, pd.DataFrame]]:
     one per family: the main one's (``ms``) ``traj_<task>.png``, another's ``traj_<task>-to-<family>.png``."""
     d = df[df.task == task]
     fam = d.method.map(family_of)
-    return [(f"traj_{task}.png" if f == "ms" else f"traj_{task}-to-{f}.png", d[fam == f])
-            for f in sorted(fam.unique(), key=lambda f: (f != "ms", f))]
+    return [(f"traj_{task}.png" if f == DEFAULT_TO else f"traj_{task}-to-{f}.png", d[fam == f])
+            for f in sorted(fam.unique(), key=lambda f: (f != DEFAULT_TO, f))]
 
 
 def traj(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:

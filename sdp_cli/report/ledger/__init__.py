@@ -33,6 +33,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
 from sdp_cli.report.ledger.rules import RULES, Row
@@ -51,10 +52,10 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     for p in sorted(results.glob("*/all_runs.csv")):
         df = newest_version(pd.read_csv(p))
         fam = to_family(df)
-        for f in sorted(set(fam) - {"ms"}):
+        for f in sorted(set(fam) - {DEFAULT_TO}):
             out[f"{p.parent.name}/{f}"] = df[fam == f].reset_index(drop=True)
-        if (fam == "ms").any() or df.empty:
-            out[p.parent.name] = df[fam == "ms"].reset_index(drop=True)
+        if (fam == DEFAULT_TO).any() or df.empty:
+            out[p.parent.name] = df[fam == DEFAULT_TO].reset_index(drop=True)
     for p in sorted((results / "bench").glob("*.csv")):
         out[f"bench/{p.stem}"] = pd.read_csv(p)
     for p in sorted((results / "estimates").glob("*.txt")):
@@ -139,10 +140,10 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
         fams = [f for f in others if _available(c["needs"], _family_results(res, f))
                 and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
         more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in fams]
-        versions = [("ms", _run_versions(c, res))] + [(f, _run_versions(c, _family_results(res, f))) for f in fams]
+        versions = [(DEFAULT_TO, _run_versions(c, res))] + [(f, _run_versions(c, _family_results(res, f))) for f in fams]
         texts = [(f, version_text(vs) if vs else "") for f, vs in versions]
         if more:
-            parts = [("ms", row)] + more
+            parts = [(DEFAULT_TO, row)] + more
             name = lambda f: TO_FAMILIES.get(f, f)   # noqa: E731
             row = Row("; ".join(f"TO by {name(f)}: {r.ours or '—'}" for f, r in parts),
                       parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
