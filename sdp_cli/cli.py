@@ -14,7 +14,8 @@ import typer
 
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
-                                 ToOpt, WorkersOpt, with_train_options, clean_errors, int_list, set_threads, task_help)
+                                 ToOpt, WorkersOpt, with_loop_rollout_options, with_train_options, clean_errors, int_list,
+                                 set_threads, task_help)
 from sdp_cli.errors import SdpError
 from sdp_cli.seeds import check_loop_options
 
@@ -234,20 +235,12 @@ def train_cmd(
 
 @app.command("loop")
 @with_train_options(required=("method",), check=check_loop_options)
+@with_loop_rollout_options()
 def loop_cmd(
     task: Annotated[str, typer.Option(help=task_help())],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
     n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
     n_traj: Annotated[str, typer.Option("--n-traj", help="Trajectories per iteration, e.g. 30 or 30,30,60 (last repeats).")] = "30",
-    t_a: Annotated[Optional[int], typer.Option("--t-a", help="T_a of the rollouts that warm-start collection (default T_h - T_o).")] = None,
-    eval_t_a: Annotated[Optional[str], typer.Option("--eval-t-a", help="T_a values to evaluate, e.g. 1,4,8 (default: --t-a).")] = None,
-    eval_t_a_last: Annotated[Optional[str], typer.Option("--eval-t-a-last", help="Extra T_a values evaluated at the last iteration only (Table 2c), e.g. 1,2,3.")] = None,
-    k_rollout: Annotated[Optional[int], typer.Option("--k-rollout", help="Denoising steps at rollout (default K).")] = None,
-    conversion: Annotated[Optional[str], typer.Option(help="How predicted chunks become controls in every rollout "
-                                                           "of the loop: inverse-dynamics or tracking (default: the "
-                                                           "task's; see `sdp rollout --help`).")] = None,
-    n_test: Annotated[int, typer.Option("--n-test", help="Test instances (fixed set from the test seed).")] = 50,
-    test_seed: Annotated[int, typer.Option("--test-seed", help="Test seed (disjoint from training seeds).")] = 0,
     reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
     max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
     to: ToOpt = DEFAULT_TO,
@@ -255,23 +248,18 @@ def loop_cmd(
     device: DeviceOpt = "auto",
     executor: ExecutorOpt = None,
     scheduler: SchedulerOpt = None,
-    single_shooting: Annotated[bool, typer.Option("--single-shooting", help="Evaluations also report the single-shooting TO baseline (see `sdp refine --help`; slow on UR5 and the quadrotor).")] = False,
-    eval_refine: Annotated[bool, typer.Option("--eval-refine/--no-eval-refine", help="Evaluations refine the policy's rollouts (the paper's refined); off: the policy's own metrics only (sweeps).")] = True,
     threads: ThreadsOpt = 1,
     progress: ProgressOpt = True,
     train=None,
+    rollout=None,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. The training options are `sdp train`'s
     (--epochs per iteration; --seed also seeds collection, 1000 * seed + k; the --save-at checkpoints are
     evaluated too)."""
-    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, run_loop
+    from sdp_cli.loop import LoopConfig, run_loop
     from sdp_cli.train import resolve_device
 
     set_threads(threads)
-    rollout = LoopRolloutConfig(t_a=t_a, eval_t_a=int_list(eval_t_a, "--eval-t-a"),
-                                eval_t_a_last=int_list(eval_t_a_last, "--eval-t-a-last"), k_rollout=k_rollout,
-                                n_test=n_test, test_seed=test_seed, single_shooting=single_shooting,
-                                eval_refine=eval_refine, conversion=conversion)
     cfg = LoopConfig(task=task, train=train, rollout=rollout, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
                      reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
                      device=str(resolve_device(device)), executor=executor, scheduler=scheduler, to=to)

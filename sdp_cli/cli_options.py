@@ -189,3 +189,58 @@ def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[
         return wrapper
 
     return decorate
+
+
+def with_loop_rollout_options(cls=None) -> Callable:
+    """Give ``sdp loop`` every rollout/evaluation option of :class:`~sdp_cli.loop_options.LoopRolloutConfig` as a
+    flag (``--t-a``, ``--eval-t-a 1,4,8``, ``--eval-refine/--no-eval-refine``, ...), generated from its fields
+    as the experiment keys are; the wrapped function receives ``rollout=LoopRolloutConfig(given options)``
+    (``cls``: a subclass with more options)."""
+    import inspect
+    from dataclasses import fields
+
+    from sdp_cli.loop_options import LoopRolloutConfig, _default, option_kind
+
+    cls = cls or LoopRolloutConfig
+
+    def param(f):
+        base, item, optional = option_kind(f, cls)
+        flag = "--" + f.name.replace("_", "-")
+        default = _default(f)
+        if base is bool:
+            info = typer.Option(f"{flag}/--no-{flag[2:]}", help=f.metadata["help"], rich_help_panel="Loop options")
+            return inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=default,
+                                     annotation=Annotated[bool, info])
+        kind = str if item is not None else base
+        shown = ",".join(map(str, default)) if item is not None else default
+        info = typer.Option(flag, help=f.metadata["help"], rich_help_panel="Loop options",
+                            show_default=shown if default not in (None, ()) else False)
+        return inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=None,
+                                 annotation=Annotated[Optional[kind], info])
+
+    opts = list(fields(cls))
+
+    def decorate(fn: Callable) -> Callable:
+        params = [param(f) for f in opts]
+
+        @functools.wraps(fn)
+        @clean_errors
+        def wrapper(**kwargs):
+            given = {}
+            for f in opts:
+                value = kwargs.pop(f.name)
+                if value is None:
+                    continue
+                given[f.name] = (int_list(value, "--" + f.name.replace("_", "-"))
+                                 if option_kind(f, cls)[1] is not None else value)
+            return fn(**kwargs, rollout=cls(**given))
+
+        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "rollout"]
+        ordered = ([p for p in own if p.default is inspect.Parameter.empty] + params
+                   + [p for p in own if p.default is not inspect.Parameter.empty])
+        wrapper.__signature__ = inspect.Signature([p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in ordered])
+        wrapper.__annotations__ = {p.name: p.annotation for p in ordered}
+        del wrapper.__wrapped__
+        return wrapper
+
+    return decorate

@@ -12,13 +12,17 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.families import DEFAULT_TO
+from sdp_cli.loop_options import group_keys
 from sdp_cli.errors import SdpError
 
 PIPELINES_DIR = Path("pipelines")
-GROUP_DEFAULTS = {"methods": ["sdp"], "seeds": [0], "n_traj": [30], "n_algo": 1, "epochs": 1000, "save_at": [],
-                  "horizon": 32, "t_a": None, "eval_t_a": [], "eval_t_a_last": [], "k_rollout": None, "n_test": 50,
-                  "test_seed": 0, "max_iter": 1000, "single_shooting": False, "train": {}, "tag": None,
-                  "n_traj_schedule": None, "to": DEFAULT_TO, "conversion": None}
+#: the group keys that are not loop rollout options (those come from LoopRolloutConfig's fields: below)
+_GROUP_OWN = {"task": ("str", None), "methods": ("[str]", ["sdp"]), "seeds": ("[int]", [0]),
+              "n_traj": ("[int]", [30]), "n_algo": ("int", 1), "epochs": ("int", 1000), "save_at": ("[int]", []),
+              "horizon": ("int", 32), "max_iter": ("int", 1000), "train": ("dict", {}), "tag": ("str?", None),
+              "n_traj_schedule": ("[int]?", None), "to": ("str", DEFAULT_TO)}
+_GROUP_KEYS = {**_GROUP_OWN, **group_keys()}
+GROUP_DEFAULTS = {k: d for k, (_, d) in _GROUP_KEYS.items() if k != "task"}
 
 
 def load_experiment(name: str, root: Path = Path(".")) -> dict:
@@ -39,11 +43,7 @@ def load_experiment(name: str, root: Path = Path(".")) -> dict:
 
 
 #: the type of each group key: "int", "int?" (or null), "[int]" (a list of), "str", "bool", "dict"
-GROUP_TYPES = {"task": "str", "methods": "[str]", "seeds": "[int]", "n_traj": "[int]", "n_algo": "int",
-               "epochs": "int", "save_at": "[int]", "horizon": "int", "t_a": "int?", "eval_t_a": "[int]",
-               "eval_t_a_last": "[int]", "k_rollout": "int?", "n_test": "int", "test_seed": "int",
-               "max_iter": "int", "single_shooting": "bool", "train": "dict", "tag": "str?",
-               "n_traj_schedule": "[int]?", "to": "str", "conversion": "str?"}
+GROUP_TYPES = {k: spec for k, (spec, _) in _GROUP_KEYS.items()}
 #: the keys whose values multiply into the group's runs (methods x seeds x n_traj)
 SWEEP_KEYS = ("methods", "seeds", "n_traj")
 _PY = {"int": int, "str": str, "bool": bool, "dict": dict, "float": (int, float)}

@@ -32,37 +32,11 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.families import DEFAULT_TO
+from sdp_cli.loop_options import LoopRolloutConfig  # noqa: F401 (re-exported: sdp_cli.loop.LoopRolloutConfig)
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
 from sdp_cli.policy.config import TrainConfig, flat_options
-
-
-@dataclass(frozen=True)
-class LoopRolloutConfig:
-    """How each iteration's policy is rolled out: the warm start of the next collection (``t_a``,
-    ``k_rollout``) and the evaluation on the fixed test set."""
-
-    t_a: int | None = field(default=None, metadata=rule(ge=1))  # T_a of the rollouts that warm-start collection
-    eval_t_a: tuple = field(default=(), metadata=rule(ge=1))   # T_a values evaluated on the test set (default: t_a)
-    eval_t_a_last: tuple = field(default=(), metadata=rule(ge=1))  # extra T_a values at the last iteration (Table 2c)
-    k_rollout: int | None = field(default=None, metadata=rule(ge=1))  # denoising steps at rollout (default K)
-    conversion: str | None = None  # predicted chunk -> controls (sdp_cli.tasks.conversion; default: the task's)
-    n_test: int = field(default=50, metadata=rule(ge=1))
-    test_seed: int = 0
-    single_shooting: bool = False  # evaluations also report the single-shooting TO baseline
-    eval_refine: bool = True       # evaluations refine the rollouts (False: policy metrics only)
-
-    def __post_init__(self):
-        from sdp_cli.seeds import check_seed
-
-        from sdp_cli.tasks.conversion import check_conversion
-
-        check_seed(self.test_seed, "test seed")
-        check_fields(self)
-        check_conversion(self.conversion)
-        for name in ("eval_t_a", "eval_t_a_last"):
-            object.__setattr__(self, name, tuple(int(v) for v in getattr(self, name)))
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,9 @@ An experiment file lists *groups*; each group is a sweep::
         t_a: 8                 # T_a of the warm-starting rollouts
         eval_t_a: [8]          # T_a values evaluated on the test set at every iteration
         eval_t_a_last: [1, 4]  # extra T_a values evaluated at the last iteration only (Table 2c)
-        n_test: 50
+        n_test: 50             # every rollout/evaluation option of `sdp loop` is a key (sdp_cli.loop_options):
+        eval_refine: true      #   t_a, eval_t_a, eval_t_a_last, k_rollout, conversion, n_test, test_seed,
+                               #   single_shooting, eval_refine
         train: {batch_size: 256, sobolev_alpha: 1.0}   # optional: any other training option (`sdp train --help`)
         tag: h16               # optional: appended to the run names (groups that differ only in settings)
 
@@ -93,7 +95,8 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
 
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
-    from sdp_cli.loop import LoopConfig, LoopRolloutConfig
+    from sdp_cli.loop import LoopConfig
+    from sdp_cli.loop_options import from_group
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.seeds import check_loop_seed
 
@@ -101,9 +104,7 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
 
     train = TrainConfig.of(**{**(g["train"] or {}), "method": method, "epochs": g["epochs"], "seed": seed,
                               "horizon": g["horizon"], "save_at": [int(e) for e in g["save_at"] if e < g["epochs"]]})
-    rollout = LoopRolloutConfig(t_a=g["t_a"], eval_t_a=tuple(g["eval_t_a"]), eval_t_a_last=tuple(g["eval_t_a_last"]),
-                                k_rollout=g["k_rollout"], n_test=g["n_test"], test_seed=g["test_seed"],
-                                single_shooting=g["single_shooting"], conversion=g["conversion"])
+    rollout = from_group(g)   # every LoopRolloutConfig field is a group key (sdp_cli.loop_options)
     return LoopConfig(task=g["task"], train=train, rollout=rollout, n_algo=g["n_algo"],
                       n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), max_iter=g["max_iter"],
                       workers=1, device="cpu", to=g["to"])

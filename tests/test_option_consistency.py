@@ -82,3 +82,57 @@ def test_a_loop_folder_of_the_flat_layout_resumes_with_the_same_settings_only(tm
                                                                                   "alpha_sobolev": 1.0}}))
     with pytest.raises(SdpError, match=r"train\.sobolev\.alpha=1\.0 \(now 0\.001\)"):
         check_resume(cfg, out)
+
+
+def test_a_loop_rollout_option_added_once_is_a_flag_an_experiment_key_and_a_validated_value(tmp_path):
+    """A field added to LoopRolloutConfig (here in a subclass) needs nothing else: `sdp loop`'s flag, the
+    experiment key with its type and default, the config a group builds, and its range rule, all from the field."""
+    from dataclasses import dataclass
+
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli_options import with_loop_rollout_options
+    from sdp_cli.experiment import GROUP_DEFAULTS, GROUP_TYPES, type_ok
+    from sdp_cli.loop_options import LoopRolloutConfig, from_group, group_keys, loop_opt
+
+    @dataclass(frozen=True)
+    class WithBudget(LoopRolloutConfig):
+        eval_budget: int = loop_opt(3, "Evaluations per iteration.", ge=1)
+        eval_every: tuple[int, ...] = loop_opt(help="Iterations to evaluate.", factory=tuple, ge=1)
+
+    keys = group_keys(WithBudget)
+    assert keys["eval_budget"] == ("int", 3) and keys["eval_every"] == ("[int]", [])
+    assert {k: v for k, v in keys.items() if k in GROUP_TYPES} == {k: (GROUP_TYPES[k], GROUP_DEFAULTS[k])
+                                                                   for k in group_keys()}
+    assert not type_ok("3", keys["eval_budget"][0]) and type_ok([1, 2], keys["eval_every"][0])
+    cfg = from_group({**{k: d for k, (_, d) in keys.items()}, "eval_budget": 7, "eval_every": [1, 3]}, WithBudget)
+    assert cfg.eval_budget == 7 and cfg.eval_every == (1, 3)
+    with pytest.raises(SdpError, match="eval_budget"):
+        WithBudget(eval_budget=0)
+
+    seen = {}
+    app_ = typer.Typer()
+
+    @app_.command()
+    @with_loop_rollout_options(WithBudget)
+    def run(name: str = "x", rollout=None) -> None:
+        seen["rollout"] = rollout
+
+    runner = CliRunner()
+    r = runner.invoke(app_, ["--eval-budget", "5", "--eval-every", "2,4", "--no-eval-refine"])
+    assert r.exit_code == 0, r.output
+    assert (seen["rollout"].eval_budget, seen["rollout"].eval_every, seen["rollout"].eval_refine) == (5, (2, 4), False)
+    r = runner.invoke(app_, ["--eval-budget", "0"])
+    assert r.exit_code == 1 and "eval_budget" in r.output
+
+
+def test_every_loop_rollout_option_is_a_flag_of_loop_and_an_experiment_key():
+    """eval_refine was a flag of `sdp loop` that no experiment file could set: now both come from one field."""
+    from dataclasses import fields
+
+    from sdp_cli.experiment import GROUP_TYPES
+    from sdp_cli.loop_options import LoopRolloutConfig
+
+    names = {f.name for f in fields(LoopRolloutConfig)}
+    assert names <= set(_params("loop")) and names <= set(GROUP_TYPES)
+    assert "eval_refine" in names
