@@ -252,3 +252,27 @@ def test_quadrotor_gains_without_contact_match_finite_differences():
     free = np.flatnonzero(~res.clamped.any(1))
     for c in check_gains(task, res, [int(free[0]), int(free[len(free) // 2]), int(free[-1])], eps=1e-5):
         assert c.converged and c.rel_error < 1e-4, (c.t, c.rel_error)
+
+
+def test_dense_call_returns_what_the_casadi_call_returns_bit_for_bit():
+    """The zero-copy call of the DDP's mapped functions (sdp_cli.trajopt.ddp_model.DenseCall): same shapes and
+    bits as np.asarray of casadi's DM outputs, several outputs and one, and a sparse output through the fallback."""
+    import casadi as ca
+
+    from sdp_cli.trajopt.ddp_model import DenseCall
+
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
+    f = ca.Function("f", [x, u], [ca.sin(x) * u[0], ca.vertcat(x, u).T @ ca.vertcat(x, u), ca.jacobian(ca.sin(x), x)])
+    F = f.map(7, "serial")
+    rng = np.random.default_rng(0)
+    X, U = rng.normal(size=(3, 7)), rng.normal(size=(2, 7))
+    want = [np.asarray(o) for o in F(X, U)]
+    got = DenseCall(F)(X, U)
+    assert not DenseCall(F).dense                       # the Jacobian of sin(x) is diagonal: sparse
+    assert all(g.shape == w.shape and np.array_equal(g, w) for g, w in zip(got, want))
+    dense = ca.Function("g", [x, u], [ca.densify(ca.sin(x) * u[0])]).map(7, "serial")
+    one = DenseCall(dense)
+    assert one.dense
+    out = one(X, U)
+    assert isinstance(out, np.ndarray) and np.array_equal(out, np.asarray(dense(X, U)))
+    assert np.array_equal(one(X[:, ::-1], U), np.asarray(dense(X[:, ::-1], U)))   # fresh outputs per call

@@ -57,6 +57,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.trajopt import ddp_al as al
 from sdp_cli.trajopt.boxqp import box_qp, free_solve
 from sdp_cli.trajopt.ddp_gains import GainsMixin
+from sdp_cli.trajopt.ddp_model import DenseCall
 from sdp_cli.trajopt.ddp_model import cols as _cols
 from sdp_cli.trajopt.ddp_model import ddp_functions, general, left_inverse, to_tangent
 from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
@@ -102,10 +103,11 @@ class DDPSolver(GainsMixin):
     def __repr__(self) -> str:
         return f"DDPSolver(task={self.task.name!r}, T={self.T}, max_iter={self.max_iter}, jit={self.jitted})"
 
-    def _map(self, name: str, n: int) -> ca.Function:
+    def _map(self, name: str, n: int) -> DenseCall:
+        """``self._f[name]`` mapped over ``n`` columns, called with numpy in and out (:class:`DenseCall`)."""
         key = (name, n)
         if key not in self._maps:
-            self._maps[key] = self._f[name].map(n, "serial")
+            self._maps[key] = DenseCall(self._f[name].map(n, "serial"))
         return self._maps[key]
 
     # ------------------------------------------------------------------ evaluations (batched)
