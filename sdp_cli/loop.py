@@ -101,17 +101,21 @@ class LoopConfig:
         if self.max_iter <= 0:
             raise SdpError(f"max_iter must be > 0, got {self.max_iter}")
         tcfg, r = self.train, self.rollout
-        if tcfg.is_diffusion:
-            if self.horizon > task.T + 1:
-                raise SdpError(f"horizon {self.horizon} is longer than the task's T + 1 = {task.T + 1}")
-            hi = tcfg.policy.max_t_a
-            for name, values in (("t_a", () if r.t_a is None else (r.t_a,)), ("eval_t_a", r.eval_t_a),
-                                 ("eval_t_a_last", r.eval_t_a_last)):
-                bad = [v for v in values if not 1 <= v <= hi]
-                if bad:
-                    raise SdpError(f"{name} {bad} outside [1, T_h - T_o] = [1, {hi}]")
+        if tcfg.chunked and self.horizon > task.T + 1:
+            raise SdpError(f"horizon {self.horizon} is longer than the task's T + 1 = {task.T + 1}")
+        # the policies' own rules (Policy.max_t_a, Policy.sampler_options), from the config before any policy
+        hi, what = (tcfg.policy.max_t_a, "T_h - T_o") if tcfg.chunked else (1, "one control per state")
+        for name, values in (("t_a", () if r.t_a is None else (r.t_a,)), ("eval_t_a", r.eval_t_a),
+                             ("eval_t_a_last", r.eval_t_a_last)):
+            bad = [v for v in values if not 1 <= v <= hi]
+            if bad:
+                raise SdpError(f"{name} {bad} outside [1, {what}] = [1, {hi}] for method {tcfg.method!r}")
+        if r.k_rollout is not None:
+            if not tcfg.chunked:
+                raise SdpError(f"k_rollout (denoising steps at rollout) applies to chunked diffusion policies; "
+                               f"{tcfg.method!r} has no sampler")
             K = tcfg.policy.diffusion_steps
-            if r.k_rollout is not None and not 1 <= r.k_rollout <= K:
+            if not 1 <= r.k_rollout <= K:
                 raise SdpError(f"k_rollout must be in [1, K] = [1, {K}], got {r.k_rollout}")
 
     def n_traj_at(self, k: int) -> int:

@@ -57,17 +57,17 @@ class RolloutConfig:
         check_conversion(self.conversion)
 
     def validate(self, policy) -> "RolloutConfig":
-        if policy.is_diffusion:
-            t_a = self.t_a if self.t_a is not None else policy.T_h - policy.T_o
-            if not 1 <= t_a <= policy.T_h - policy.T_o:
-                raise SdpError(f"t_a must be in [1, T_h - T_o] = [1, {policy.T_h - policy.T_o}], got {t_a}")
-            k = self.k_rollout if self.k_rollout is not None else policy.K
-            if not 1 <= k <= policy.K:
-                raise SdpError(f"k_rollout must be in [1, K] = [1, {policy.K}], got {k}")
-            # torque actions are played as they are: no conversion is used, none is recorded
-            conversion = (self.conversion or policy.task.default_conversion) if policy.task.action != "u" else None
-            return RolloutConfig(self.n, self.seed, t_a, k, conversion)
-        return RolloutConfig(self.n, self.seed, 1, None, None)   # MLPs act with torques
+        """The settings a rollout of ``policy`` uses: ``t_a`` in ``[1, policy.max_t_a]`` (default the
+        maximum), the sampler's ``k_rollout`` (``policy.sampler_options``: default K; refused for a family
+        without a sampler), and the conversion (None where the actions are controls: nothing converts them)."""
+        hi = policy.max_t_a
+        t_a = self.t_a if self.t_a is not None else hi
+        if not 1 <= t_a <= hi:
+            what = "T_h - T_o" if hi > 1 else "one control per state"
+            raise SdpError(f"t_a must be in [1, {hi}] for this policy ({what}), got {t_a}")
+        k = policy.sampler_options(self.k_rollout).get("k_rollout")
+        conversion = (self.conversion or policy.task.default_conversion) if policy.task.action != "u" else None
+        return RolloutConfig(self.n, self.seed, t_a, k, conversion)
 
 
 def evaluation_xis(task: Task, n: int, seed: int) -> np.ndarray:
@@ -108,29 +108,20 @@ def rollout_policy(policy, xis: np.ndarray, config: RolloutConfig,
     with np.errstate(all="ignore"):
         while t < T and alive.any():
             idx = np.flatnonzero(alive)
-            if policy.is_diffusion:
-                tau = policy.predict_chunk(xis[idx], X[idx, t], u_prev[idx],
-                                           generator=[generators[i] for i in idx],
-                                           k_rollout=config.k_rollout)
-                rows = [tau[:, policy.T_o + s] for s in range(config.t_a)]
-                n_play = min(config.t_a, T - t)
-                controller = task.chunk_controller(X[idx, t], np.stack(rows[:n_play], axis=1), config.conversion)
-            else:
-                rows = [None]
-            for s, a in enumerate(rows):
-                if t + s >= T:
-                    break
+            sampler = {} if config.k_rollout is None else {"k_rollout": config.k_rollout}
+            acts = policy.plan(xis[idx], X[idx, t], u_prev[idx], generator=[generators[i] for i in idx],
+                               **sampler)                                           # (B, n, A), n >= t_a
+            n_play = min(config.t_a, T - t)
+            controller = task.chunk_controller(X[idx, t], acts[:, :n_play], config.conversion)
+            for s in range(n_play):
                 x = X[idx, t + s]
-                if a is None:  # MLP: one control per state
-                    u = np.clip(policy.act(x, xis[idx]), task.u_lb, task.u_ub)
-                else:
-                    u = controller(x, s)
+                u = controller(x, s)
                 x_next = step_batch(task, x, u)
                 bad = ~np.all(np.isfinite(x_next), axis=1) | (np.abs(x_next).max(axis=1) > DIVERGENCE_STATE)
                 U[idx, t + s] = u
                 X[idx, t + s + 1] = np.where(bad[:, None], np.nan, x_next)
                 u_prev[idx] = u
-            t += len(rows)
+            t += config.t_a
             alive &= np.all(np.isfinite(X[:, min(t, T)]), axis=1)
             if on_step:
                 on_step(min(t, T), T)

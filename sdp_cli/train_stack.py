@@ -39,7 +39,7 @@ DEFAULT_STACK = 8
 
 def stackable(cfg: TrainConfig) -> bool:
     """Runs of this config can share a stack: a chunked (diffusion) method, Sobolev term (if any) in jvp mode."""
-    return cfg.is_diffusion and (not cfg.uses_sobolev or cfg.sobolev.mode == "jvp")
+    return cfg.chunked and (not cfg.uses_sobolev or cfg.sobolev.mode == "jvp")
 
 
 def stack_key(task: str, cfg: TrainConfig) -> tuple:

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from sdp_cli.data.chunks import ChunkDataset
 from sdp_cli.tasks import get_task, task_names
+from sdp_cli.policy.base import ChunkPlanning
 from sdp_cli.checks.contract import (MEMORIZER_RTOL, memorizer_costs, pipeline_cases, pipeline_chunk_cases,
                                    solve_instances)
 
@@ -42,8 +43,8 @@ def test_every_rollout_replanning_time_is_a_training_start():
         starts = set(np.unique(np.arange(len(ds)) % ds.n_starts))
         assert set(replan_times(T, T_a)) <= starts, (task_name, T_h, T_a)
 
-        class Recorder:
-            is_diffusion, K, T_o = True, 1, 1
+        class Recorder(ChunkPlanning):
+            K, T_o = 1, 1
 
             def __init__(self):
                 self.task, self.T_h, self.times, self.t = task, T_h, [], 0

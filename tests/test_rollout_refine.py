@@ -51,6 +51,25 @@ def test_t_a_and_k_rollout_are_validated(trained):
     assert r.exit_code == 1 and "t_a must be in" in r.output
 
 
+def test_every_family_plans_through_one_api(trained):
+    """plan() is the one action API: a chunked policy's rows after the history (n = max_t_a = T_h - T_o), a
+    per-step one's control (n = max_t_a = 1, actions u); an option the family cannot honour is refused in one
+    line instead of being ignored (`--t-a 5` or `--k-rollout 2` on an MLP)."""
+    sdp, pddp = load_policy(trained["sdp"]), load_policy(trained["pddp"])
+    xi = evaluation_xis(sdp.task, 3, 0)
+    u_prev = np.zeros((3, 1))
+    chunk = sdp.predict_chunk(xi, xi, u_prev, generator=instance_generators(0, range(3)))
+    planned = sdp.plan(xi, xi, u_prev, generator=instance_generators(0, range(3)))
+    assert sdp.max_t_a == sdp.T_h - sdp.T_o and planned.shape == (3, sdp.max_t_a, 1)
+    np.testing.assert_array_equal(planned, chunk[:, sdp.T_o:])
+    assert pddp.max_t_a == 1 and pddp.task.action == "u"
+    np.testing.assert_array_equal(pddp.plan(xi, xi, u_prev), pddp.act(xi, xi)[:, None])
+    assert RolloutConfig(n=2).validate(pddp) == RolloutConfig(n=2, t_a=1, k_rollout=None, conversion=None)
+    for flags, msg in ((["--t-a", "5"], "t_a must be in [1, 1]"), (["--k-rollout", "2"], "has no sampler")):
+        r = runner.invoke(app, ["rollout", "--policy", str(trained["pddp"]), "--out", "x.npz", *flags])
+        assert r.exit_code == 1 and msg in r.output, r.output
+
+
 def test_inpainting_keeps_the_history(trained):
     pol = load_policy(trained["sdp"])
     xi = evaluation_xis(pol.task, 4, 0)

@@ -11,8 +11,12 @@ scheduler. Everything the project does with a policy goes through this interface
   with ``parts = {"dp": regression, "sobolev": term}``; :meth:`Policy.balance_terms` feeds the Sobolev
   balance; :func:`sdp_cli.train.train_step` is the one optimisation step (trainer and estimate);
 - **rollout** (physical units, numpy, batched): after :meth:`Policy.bind` (done by
-  :func:`~sdp_cli.policy.api.load_policy`), chunked families answer ``predict_chunk(xi, x, u_prev)``
-  ``-> (B, T_h, A)`` and the others ``act(x, xi) -> (B, nu)``.
+  :func:`~sdp_cli.policy.api.load_policy`), every family answers the one action API of Algorithm 2:
+  :meth:`Policy.plan` ``(xi, x, u_prev, generator, **sampler) -> (B, n, A)``, the actions to play from ``x``
+  in ``policy.task.action`` units, of which a rollout plays ``T_a <= max_t_a`` before planning again, with the
+  sampler keywords :meth:`Policy.sampler_options` validates (``k_rollout`` for diffusion families). A per-step
+  family (the MLPs) plans one control (``n = max_t_a = 1``, action ``u``); a chunked one (:class:`ChunkPlanning`)
+  the rows of its chunk after the observed ones (``n = max_t_a = T_h - T_o``).
 
 A family is one module with a subclass and one :func:`~sdp_cli.policy.registry.register_method`.
 """
@@ -34,6 +38,30 @@ def as_tensor(a, device) -> torch.Tensor:
     """float32 tensor on ``device`` from an array or tensor."""
     return torch.as_tensor(np.asarray(a, dtype=np.float64) if not torch.is_tensor(a) else a,
                            device=device).to(torch.float32)
+
+
+class ChunkPlanning:
+    """The action API of a chunked planner with ``T_h``, ``T_o``, ``K`` and ``predict_chunk(xi, x, u_prev,
+    generator, k_rollout) -> (B, T_h, A)`` (rows ``[:T_o]`` the observed history): :meth:`plan` is the rows
+    after the history. Used by the diffusion families and by the memorizer (sdp_cli.policy.memorizer)."""
+
+    @property
+    def max_t_a(self) -> int:
+        """``T_h - T_o``: the rows a chunk plans after the observed ones (T_a's bound and default)."""
+        return self.T_h - self.T_o
+
+    def sampler_options(self, k_rollout: int | None = None) -> dict:
+        """``{"k_rollout": k}`` with ``k`` in ``[1, K]`` (default ``K``), else a one-line ``SdpError``."""
+        from sdp_cli.errors import SdpError
+
+        k = self.K if k_rollout is None else int(k_rollout)
+        if not 1 <= k <= self.K:
+            raise SdpError(f"k_rollout must be in [1, K] = [1, {self.K}], got {k}")
+        return {"k_rollout": k}
+
+    def plan(self, xi, x, u_prev, generator=None, **sampler) -> np.ndarray:
+        """``(B, T_h - T_o, A)``: the predicted chunk's rows after the observed history."""
+        return self.predict_chunk(xi, x, u_prev, generator=generator, **sampler)[:, self.T_o:]
 
 
 class Policy(nn.Module):
@@ -78,10 +106,32 @@ class Policy(nn.Module):
     def method(self) -> str:
         return self.config.method
 
+    # ------------------------------------------------------------------ the action API (Algorithm 2)
+    # (defaults: a chunked family with ``predict_chunk``, ``T_h``, ``T_o``, ``K`` plans as :class:`ChunkPlanning`;
+    # a per-step family with ``act(x, xi) -> (B, nu)`` plans one control)
     @property
-    def is_diffusion(self) -> bool:
-        """Chunked (Algorithm 2) rather than one control per state (the name the rollout code reads)."""
-        return self.chunked
+    def max_t_a(self) -> int:
+        """How many of :meth:`plan`'s rows a rollout may play before planning again (T_a's bound and default);
+        1 for a per-step family."""
+        return ChunkPlanning.max_t_a.fget(self) if self.chunked else 1
+
+    def sampler_options(self, k_rollout: int | None = None) -> dict:
+        """The validated sampler keywords of :meth:`plan`; a family without a sampler takes none."""
+        if self.chunked:
+            return ChunkPlanning.sampler_options(self, k_rollout)
+        if k_rollout is not None:
+            from sdp_cli.errors import SdpError
+
+            raise SdpError(f"k_rollout (denoising steps at rollout) applies to chunked diffusion policies; "
+                           f"{self.method!r} has no sampler")
+        return {}
+
+    def plan(self, xi, x, u_prev, generator=None, **sampler) -> np.ndarray:
+        """The actions to play from the states ``x (B, nx)``: ``(B, n, A)`` with ``n >= max_t_a``, in
+        ``policy.task.action`` units (``xi (B, n_xi)``, ``u_prev (B, nu)`` the previous controls)."""
+        if self.chunked:
+            return ChunkPlanning.plan(self, xi, x, u_prev, generator, **sampler)
+        return self.act(x, xi)[:, None]
 
     # ------------------------------------------------------------------ rollout
     def bind(self, ck: dict, device="cpu") -> "Policy":
@@ -97,8 +147,8 @@ class Policy(nn.Module):
         self.task_options: dict = dict(ck.get("task_options") or {})   # recorded by rollouts, checked by refine
         task = get_task(ck["task"], **self.task_options)
         check_task_params(task, ck.get("task_params"), "policy checkpoint")
-        # a chunked policy's action variable may differ from the task's default
-        self.task = task_with_action(task, self.action) if self.chunked else task
+        # the policy's action variable (a per-step family's is ``u``) may differ from the task's default
+        self.task = task_with_action(task, self.action)
         self.checkpoint_epoch = ck.get("epoch")
         self.dataset_info = dict(ck.get("dataset") or {})   # path, sha256, n_traj, T of the training data
         return self.to(self.device).eval()

@@ -150,8 +150,8 @@ class TrainConfig:
         return get_method(self.method).policy_class
 
     @property
-    def is_diffusion(self) -> bool:
-        """A chunked (diffusion) method: plans action chunks, Algorithm 2."""
+    def chunked(self) -> bool:
+        """A chunked method: plans action chunks, Algorithm 2 (the method's registration says so)."""
         from sdp_cli.policy.registry import get_method
 
         return get_method(self.method).chunked
@@ -281,7 +281,7 @@ def check(cfg: TrainConfig) -> None:
         raise SdpError("sobolev_fraction < 1 needs sobolev_mode 'jvp'")
     if s.path not in SOBOLEV_PATHS:
         raise SdpError(f"sobolev_path must be one of {', '.join(SOBOLEV_PATHS)}; got {s.path!r}")
-    sobolev_diffusion = cfg.is_diffusion and cfg.uses_sobolev
+    sobolev_diffusion = cfg.chunked and cfg.uses_sobolev
     if s.path == "total" and not sobolev_diffusion:
         raise SdpError(f"sobolev_path 'total' applies to Sobolev diffusion methods (sdp), not {p.method!r}")
     if s.cap is not None:
@@ -290,7 +290,7 @@ def check(cfg: TrainConfig) -> None:
     for name in ("down_dims", "mlp_hidden"):
         if not getattr(p, name):
             raise SdpError(f"{name} must be positive integers, got {getattr(p, name)}")
-    if cfg.is_diffusion:
+    if cfg.chunked:
         levels = len(p.down_dims)
         if p.horizon % (2 ** (levels - 1)):
             raise SdpError(f"horizon T_h = {p.horizon} must be divisible by 2^(len(down_dims) - 1) = "

@@ -14,16 +14,16 @@ from __future__ import annotations
 import numpy as np
 
 from sdp_cli.data.chunks import ChunkDataset, task_with_action
+from sdp_cli.policy.base import ChunkPlanning
 from sdp_cli.tasks import Task
 
 
-class MemorizerPolicy:
+class MemorizerPolicy(ChunkPlanning):
     """Nearest-neighbour lookup of training chunks ``(N S, T_h, A)`` (unnormalized).
 
-    ``is_diffusion``, ``T_h``, ``T_o``, ``K``, ``task`` and ``predict_chunk`` are what
-    :class:`sdp_cli.rollout.RolloutConfig` and :func:`sdp_cli.rollout.rollout_policy` use."""
+    A chunked planner (:class:`~sdp_cli.policy.base.ChunkPlanning`: ``plan``, ``max_t_a``, ``sampler_options``
+    from ``T_h``, ``T_o``, ``K = 1`` and ``predict_chunk``): what :func:`sdp_cli.rollout.rollout_policy` uses."""
 
-    is_diffusion = True
     K = 1
 
     def __init__(self, task: Task, arrays: dict, T_h: int, T_o: int = 1, action: str | None = None):
@@ -50,14 +50,14 @@ class MemorizerPolicy:
         return self.chunks[np.argmin(d, axis=1)].copy()
 
 
-class NoisyMemorizer:
+class NoisyMemorizer(ChunkPlanning):
     """The memorizer's chunk plus noise ``sigma * scale`` (``scale (A,)``: the normalizer's half-range of each
     action coordinate, so sigma is in the units the networks see); rows ``[:T_o]`` (the inpainted history) stay
     exact. ``kind``: ``white`` (independent per row and coordinate) or ``offset`` (one draw per chunk and
     coordinate, held over its rows). A stand-in for a learner that is nearly right (``sdp check-task``'s
     noise-tolerance row, ``bench/action_noise.py``)."""
 
-    is_diffusion, K = True, 1
+    K = 1
 
     def __init__(self, base: MemorizerPolicy, scale: np.ndarray, sigma: float, kind: str = "white", seed: int = 0):
         if kind not in ("white", "offset"):
