@@ -276,3 +276,28 @@ def test_dense_call_returns_what_the_casadi_call_returns_bit_for_bit():
     out = one(X, U)
     assert isinstance(out, np.ndarray) and np.array_equal(out, np.asarray(dense(X, U)))
     assert np.array_equal(one(X[:, ::-1], U), np.asarray(dense(X[:, ::-1], U)))   # fresh outputs per call
+
+
+def test_every_iteration_on_a_quadrotor_with_inactive_constraints_takes_a_step(monkeypatch):
+    """quadrotor-0's floor and ceiling stay inactive from the naive guess: the augmented-Lagrangian loop has
+    nothing to update, so every iteration is a line search (an update that changes nothing used to take an
+    iteration of its own without a step: 6 of about 20)."""
+    from sdp_cli.rollout import evaluation_xis
+    from sdp_cli.trajopt.ddp import DDPSolver
+
+    task = get_task("quadrotor-0")
+    searched = []
+    line_search = DDPSolver._line_search
+
+    def counting(self, X, U, rows, *args, **kwargs):
+        searched.append(len(rows))
+        return line_search(self, X, U, rows, *args, **kwargs)
+
+    monkeypatch.setattr(DDPSolver, "_line_search", counting)
+    xis = evaluation_xis(task, 3, 0)
+    guesses = [task.naive_guess(xi) for xi in xis]
+    res = DDPSolver(task).solve_batch(np.array([task.initial_state(x) for x in xis]), xis,
+                                      np.array([g[0] for g in guesses]), np.array([g[1] for g in guesses]),
+                                      gains=False)
+    assert all(r.converged for r in res)
+    assert sum(searched) == sum(r.iterations for r in res)

@@ -9,8 +9,10 @@ Gauss-Newton Hessian ``rho dh_A' dh_A`` over the constraints with ``lam + rho h 
 decided before any run, the textbook rule of Nocedal & Wright, Alg. 17.4, and Bertsekas): when an instance's
 inner DDP is stationary to ``inner_tol``, ``lam <- mu``; if the largest violation did not fall below
 ``VIOL_DECREASE`` x the one at the previous update, ``rho <- RHO_FACTOR rho`` (at most ``RHO_MAX``); the next
-inner tolerance is ``INNER_FACTOR`` x the last (not below the solve's ``tol``). Converged: stationary to ``tol``
-with every ``h <= H_TOL`` (the same 1e-6 as fatrop's constraint tolerance).
+inner tolerance is ``INNER_FACTOR`` x the last (not below the solve's ``tol``). An update that would change nothing
+(no violation, the multipliers already ``mu``) tightens the inner tolerance and the iteration steps as usual
+(it used to cost an iteration without a step). Converged: stationary to ``tol`` with every ``h <= H_TOL`` (the
+same 1e-6 as fatrop's constraint tolerance).
 """
 
 from __future__ import annotations
