@@ -250,7 +250,8 @@ def main() -> None:
                           cwd=ROOT).stdout.strip()
     text = [f"`python bench/aligator_compare.py --n {a.n} --tasks {a.tasks}` on {stamp}, commit `{head}` (package "
             f"code `{code_revision()[:12]}`), {platform.node()} ({platform.machine()}, {os.cpu_count()} CPUs, shared); "
-            "libaligator 0.19.1, crocoddyl 3.2.1, pinocchio 4.0.0 on the reference side.", ""]
+            "references: libaligator 0.19.1 with libpinocchio 4.1.0, crocoddyl 3.2.1 with pinocchio 4.0.0 "
+            "(bench/anchors/setup.sh).", ""]
     checks, tables, cross = [], [], []
     for name in a.tasks.split(","):
         task = get_task(name)
