@@ -44,12 +44,16 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=5)
     ap.add_argument("--tasks", default=",".join(task_names()))
     ap.add_argument("--out", type=Path, default=Path("results/tasks/timing.md"))
+    ap.add_argument("--conversion", default=None,
+                    help="how the shifted state actions become controls (sdp_cli.tasks.conversion; default: each "
+                         "task's own, as check-task and the rollouts)")
     args = ap.parse_args()
     rows, t0 = [], time.time()
     for name in args.tasks.split(","):
         task = get_task(name)
         arrays = solve_instances(task, args.n, max_attempts=10 * args.n)
-        recs = [optimum_timing(task, X, U, xi) for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])]
+        recs = [optimum_timing(task, X, U, xi, conversion=args.conversion)
+                for X, U, xi in zip(arrays["X"], arrays["U"], arrays["xi"])]
         df = pd.DataFrame(recs)
         late1 = df["late1"].max()
         ok = late1 <= WELL_POSED_LATE_RATIO
@@ -60,7 +64,8 @@ def main() -> None:
                           for r in recs)
             ok = ok and settled
             note = f"; at rest and in tolerance by T - 63 = {by}: {'yes' if settled else 'NO'}"
-        row = {"task": name, "T": task.T, "n": len(recs), "TO cost": rng(df.cost.round(3)),
+        conv = None if task.action == "u" else (args.conversion or task.default_conversion)
+        row = {"task": name, "conversion": conv or "(torques)", "T": task.T, "n": len(recs), "TO cost": rng(df.cost.round(3)),
                "t_in": rng(df.t_in), "t_rest": rng(df.t_rest), "speed at T": rng(df.speed_T.round(3)),
                "dist at T (m or rad)": rng(df.dist_T.round(4))}
         for k in SHIFTS:
@@ -74,14 +79,16 @@ def main() -> None:
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     text = [
         "# Timing of the TO optimum per task (is the task well-posed for a policy without time?)", "",
-        f"Written by `python bench/task_timing.py --n {args.n}` on {stamp}, code revision `{code_revision()}`, "
+        f"Written by `python bench/task_timing.py --n {args.n}"
+        f"{f' --conversion {args.conversion}' if args.conversion else ''}` on {stamp}, code revision `{code_revision()}`, "
         f"{platform.node()} ({platform.machine()}, Python {platform.python_version()}), {time.time() - t0:.0f} s.", "",
         f"TO (fatrop, from the naive guess) on the first {args.n} converged instances of seed 0 per task. "
         "`t_in`: first step from which the goal distance stays within the task's tolerance; `t_rest`: first step "
         f"from which ||v|| <= {REST_SPEED} (rad/s; the quadrotor's body twist); speed and distance at T. "
         "`late k` / `early k`: cost of playing the optimum's own actions k steps late (a'_t = a_(t-k), holding x_0 "
-        "at rest before) or early (a'_t = a_min(t+k, T-1)), divided by the optimum's cost; state actions go "
-        "through `controls_from_action` from the state reached, torques are played directly. Ranges are "
+        "at rest before) or early (a'_t = a_min(t+k, T-1)), divided by the optimum's cost; state actions are "
+        "played as one chunk through the task's conversion (column `conversion`; `task.chunk_controller`) from "
+        "the states reached, torques directly. Ranges are "
         "min-max over the instances.", "",
         f"Rule (decided before the runs): a task is well-posed when one step late costs <= {WELL_POSED_LATE_RATIO:g}x "
         "the optimum on every instance; UR5 also in tolerance and at rest from t <= T - 63 (Fig. 3's largest T_a). "

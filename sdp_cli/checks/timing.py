@@ -10,8 +10,9 @@ the paper's cost turns into a stop-timing test that no such policy can pass. For
 - speed and goal distance at ``T``;
 - the cost of playing the optimum's own actions ``k`` steps late (``a'_t = a_{t-k}``; for ``t < k``
   the action that holds ``x_0`` at rest) and early (``a'_t = a_{min(t+k, T-1)}``), relative to its
-  cost. State actions (``a_t = g(x_{t+1})``) go through :meth:`Task.controls_from_action` from the
-  state actually reached, as a policy's rollout does; torque actions are played directly.
+  cost. The shifted actions are played as one chunk through the task's conversion
+  (:meth:`Task.chunk_controller`, the task's default unless ``conversion`` says otherwise) from the states
+  actually reached, as a policy's rollout plays its chunks; torque actions are played directly (clipped).
 
 :data:`WELL_POSED_LATE_RATIO`: a task is well-posed when one step late costs at most 2x the optimum.
 """
@@ -53,24 +54,27 @@ def hold_action(task: Task, x0: np.ndarray) -> np.ndarray:
         return np.zeros(task.nu)
 
 
-def play_shifted(task: Task, X: np.ndarray, U: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Replay the optimum's actions shifted by ``k`` (> 0 late, < 0 early): ``(X', U')``."""
+def play_shifted(task: Task, X: np.ndarray, U: np.ndarray, k: int,
+                 conversion: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Replay the optimum's actions shifted by ``k`` (> 0 late, < 0 early) as one chunk through the task's
+    ``conversion`` (None: its default): ``(X', U')``."""
     T = len(U)
     A = U if task.action == "u" else action_sequence(task, X[None], U[None], task.action)[0, 1:]   # a_t -> x_{t+1}
     hold = hold_action(task, X[0])
+    shifted = np.stack([hold if t - k < 0 else A[min(t - k, T - 1)] for t in range(T)])
+    controller = task.chunk_controller(X[:1], shifted[None], conversion)
     Xs = np.empty_like(X)
     Us = np.empty_like(U)
     Xs[0] = X[0]
     for t in range(T):
-        s = t - k
-        a = hold if s < 0 else A[min(s, T - 1)]
-        u = task.controls_from_action(Xs[t][None], a[None])[0]
+        u = controller(Xs[t][None], t)[0]
         Us[t] = u
         Xs[t + 1] = step_batch(task, Xs[t][None], u[None])[0]
     return Xs, Us
 
 
-def optimum_timing(task: Task, X: np.ndarray, U: np.ndarray, xi: np.ndarray, shifts=SHIFTS) -> dict:
+def optimum_timing(task: Task, X: np.ndarray, U: np.ndarray, xi: np.ndarray, shifts=SHIFTS,
+                   conversion: str | None = None) -> dict:
     """The timing record of one optimum (see the module docstring)."""
     X, U = np.asarray(X, float), np.asarray(U, float)
     dist = np.array([task.goal_distance(x, xi) for x in X])
@@ -80,7 +84,7 @@ def optimum_timing(task: Task, X: np.ndarray, U: np.ndarray, xi: np.ndarray, shi
            "speed_T": float(v[-1]), "dist_T": float(dist[-1]), "T": len(U)}
     for k in shifts:
         for sign, name in ((1, "late"), (-1, "early")):
-            Xs, Us = play_shifted(task, X, U, sign * k)
+            Xs, Us = play_shifted(task, X, U, sign * k, conversion)
             c = task.cost(Xs, Us, xi) if np.all(np.isfinite(Xs)) else np.inf
             row[f"{name}{k}"] = c / cost
     return row
