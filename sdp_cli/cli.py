@@ -37,8 +37,9 @@ def _version(value: bool) -> None:
 def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=_version, is_eager=True,
                                                           help="Print the package version and git revision.")] = None,
           task_module: Annotated[Optional[list[Path]], typer.Option(
-              "--task-module", help="A Python file that registers tasks of your own (sdp_cli.tasks.register); "
-                                    "repeatable. Worker processes inherit it through SDP_TASK_MODULES.")] = None,
+              "--plugin", "--task-module", help="A Python file that registers tasks (sdp_cli.tasks.register) "
+              "and/or methods (sdp_cli.policy.registry.register_method) of your own; repeatable. Worker "
+              "processes inherit it through SDP_TASK_MODULES. (--task-module: its older name.)")] = None,
           ) -> None:
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
     if task_module:

@@ -70,3 +70,68 @@ def test_unknown_method_is_one_line_listing_the_registered_ones(tmp_path):
     r = runner.invoke(app, ["train", "--data", str(data), "--method", "nope", "--epochs", "1",
                             "--out", str(tmp_path / "run")])
     assert r.exit_code == 1 and "method must be one of sdp, dp, pddp, pddp_s" in r.output
+
+
+class _EntryPoint:
+    def __init__(self, name, fn):
+        self.name, self.value, self._fn = name, f"tests:{name}", fn
+
+    def load(self):
+        return self._fn
+
+
+def test_installed_packages_add_methods_through_the_sdp_methods_entry_point(monkeypatch, capsys):
+    """An entry point of the group sdp.methods names a function that registers methods: it is called when the
+    registry loads; it cannot replace a built-in method, and one that fails is one line on stderr with the
+    registry left as it was."""
+    import sdp_cli.policy.registry as reg
+
+    def good():
+        register_method("toy_plugin", LinearPolicy, sobolev=False, description="from a package")
+
+    def clash():
+        register_method("sdp", LinearPolicy, sobolev=False)
+
+    def broken():
+        register_method("toy_half", LinearPolicy, sobolev=False)
+        raise RuntimeError("no torch here")
+
+    eps = [_EntryPoint("good", good), _EntryPoint("clash", clash), _EntryPoint("broken", broken)]
+    monkeypatch.setattr(reg.importlib.metadata, "entry_points",
+                        lambda group: eps if group == reg.ENTRY_POINT_GROUP else [])
+    builtin_sdp = get_method("sdp")
+    try:
+        reg._load_entry_points()
+        assert get_method("toy_plugin").policy is LinearPolicy
+        assert get_method("sdp") is builtin_sdp and "toy_half" not in method_names()
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 2 and "a built-in method has that name" in err[0] and "no torch here" in err[1]
+    finally:
+        _REGISTRY.pop("toy_plugin", None)
+
+
+def test_a_plugin_file_registers_a_method_under_plugin_and_its_old_name(tmp_path, monkeypatch):
+    """`sdp --plugin FILE.py` (alias `--task-module`) imports a file that may register methods too."""
+    import sys
+
+    import sdp_cli.tasks as tasks_module
+
+    monkeypatch.delenv(tasks_module.TASK_MODULES_ENV, raising=False)      # (restored after the test)
+    monkeypatch.setattr(tasks_module, "_LOADED_FILES", set())
+    before = set(sys.modules)
+    f = tmp_path / "more_methods.py"
+    f.write_text("from sdp_cli.policy.registry import register_method\n"
+                 "register_method('toy_file', 'sdp_cli.policy.mlp:MLPPolicy', sobolev=False, chunked=False,\n"
+                 "                description='an MLP under another name')\n")
+    try:
+        for flag in ("--plugin", "--task-module"):
+            _REGISTRY.pop("toy_file", None)
+            tasks_module._LOADED_FILES.clear()
+            r = runner.invoke(app, [flag, str(f), "train", "--help"])
+            assert r.exit_code == 0, r.output
+            assert "toy_file" in method_names()
+    finally:
+        _REGISTRY.pop("toy_file", None)
+        for m in set(sys.modules) - before:
+            if m.startswith("sdp_task_module_"):
+                sys.modules.pop(m)

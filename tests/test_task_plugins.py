@@ -107,5 +107,5 @@ def test_bad_task_modules_are_one_line_errors_and_built_in_names_are_kept(clean_
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 1 and msg in r.output and "Traceback" not in r.output, r.output
     assert tasks_module.get_task("pendulum").nq == 1
-    with pytest.raises(SdpError, match="pass --task-module FILE.py"):
+    with pytest.raises(SdpError, match="pass --plugin FILE.py"):
         tasks_module.get_task("no-such-task")

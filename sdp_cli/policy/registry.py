@@ -11,11 +11,22 @@ The built-in classes are named as ``"module:Class"`` strings and imported when a
 the registry (the CLI's start-up, option checks) does not import torch. Adding a family is one module with a
 ``Policy`` subclass and one :func:`register_method` call; ``tests/test_method_registry.py`` adds a toy
 linear family that way and trains, saves, loads and rolls it out through ``sdp``'s own commands.
+
+Methods from outside the package, as tasks (:mod:`sdp_cli.tasks`): a file passed with ``sdp --plugin FILE.py``
+that calls :func:`register_method`, or an installed package's entry point in the group ``sdp.methods`` naming a
+function that does (called when the registry is first imported)::
+
+    [project.entry-points."sdp.methods"]
+    chunk-mlp = "my_methods.chunk_mlp:register"
+
+A plugin cannot replace a built-in method; one that fails is one line on stderr, the other methods stay usable.
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
+import sys
 from dataclasses import dataclass
 
 from sdp_cli.errors import SdpError
@@ -84,3 +95,29 @@ def _register_builtin() -> None:
 
 
 _register_builtin()
+_BUILTIN = dict(_REGISTRY)
+
+#: the entry-point group of installed packages' methods
+ENTRY_POINT_GROUP = "sdp.methods"
+
+
+def _load_entry_points() -> None:
+    """Call every ``sdp.methods`` entry point's function (it registers methods); built-in names are restored
+    and a failing plugin leaves the registry as it was, each with one line on stderr."""
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        before = dict(_REGISTRY)
+        try:
+            ep.load()()
+        except Exception as e:  # noqa: BLE001 - someone else's package: one line, not a traceback
+            _REGISTRY.clear()
+            _REGISTRY.update(before)
+            print(f"sdp: ignoring plugin methods {ep.name!r} ({ep.value}): {type(e).__name__}: {e}", file=sys.stderr)
+            continue
+        for name, m in _BUILTIN.items():
+            if _REGISTRY.get(name) is not m:
+                _REGISTRY[name] = m
+                print(f"sdp: ignoring plugin method {name!r} ({ep.value}): a built-in method has that name",
+                      file=sys.stderr)
+
+
+_load_entry_points()

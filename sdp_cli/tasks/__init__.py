@@ -12,8 +12,10 @@ two ways, after which every command (``collect``, ``train``, ``rollout``, ``refi
       cartpole = "my_robots.tasks:CartPoleTask"
 
   loaded when first used (``sdp tasks`` lists it without importing it);
-- for quick work, a Python file that calls :func:`register`:
-  ``sdp --task-module my_task.py collect --task my-task ...``. The file's path is added to the
+- for quick work, a Python file that calls :func:`register` (and/or
+  :func:`sdp_cli.policy.registry.register_method`: the same file may add methods):
+  ``sdp --plugin my_task.py collect --task my-task ...`` (``--task-module``, its older name, still works).
+  The file's path is added to the
   environment variable ``SDP_TASK_MODULES`` (paths separated by ``os.pathsep``), which worker
   processes, sub-commands and DVC stages inherit; set it yourself to make a file's tasks known to
   every ``sdp`` command.
@@ -69,7 +71,8 @@ def get_task(name: str, **options) -> Task:
     """The task instance for ``name`` (cached per process and options)."""
     if name not in _REGISTRY:
         raise SdpError(f"unknown task {name!r}; valid tasks: {', '.join(task_names())} (a task of your own: "
-                       f"install its package (entry points {ENTRY_POINT_GROUP!r}) or pass --task-module FILE.py)")
+                       f"install its package (entry points {ENTRY_POINT_GROUP!r}) or pass --plugin FILE.py (or "
+                       "--task-module FILE.py))")
     try:
         return _make(name, tuple(sorted(options.items())))
     except TypeError as e:
@@ -102,11 +105,12 @@ def _load_entry_points() -> None:
 
 
 def load_task_module(path: str | os.PathLike) -> list[str]:
-    """Import a Python file that registers tasks (``sdp --task-module FILE.py``) and return the names it
+    """Import a Python file that registers tasks and/or methods (``sdp --plugin FILE.py``, alias ``--task-module``)
+    and return the task names it
     added; its absolute path joins ``SDP_TASK_MODULES`` so that worker processes load it too."""
     p = Path(path).expanduser().resolve()
     if not p.is_file() or p.suffix != ".py":
-        raise SdpError(f"--task-module {path}: not a Python file")
+        raise SdpError(f"--plugin {path}: not a Python file")
     key = str(p)
     before = set(_REGISTRY)
     if key not in _LOADED_FILES:
@@ -121,7 +125,7 @@ def load_task_module(path: str | os.PathLike) -> list[str]:
             raise
         except Exception as e:  # noqa: BLE001 - the user's file: one line, not a traceback
             sys.modules.pop(mod_name, None)
-            raise SdpError(f"--task-module {path} failed: {type(e).__name__}: {e}") from None
+            raise SdpError(f"--plugin {path} failed: {type(e).__name__}: {e}") from None
         _LOADED_FILES.add(key)
     listed = [s for s in os.environ.get(TASK_MODULES_ENV, "").split(os.pathsep) if s]
     if key not in listed:
