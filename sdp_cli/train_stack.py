@@ -38,8 +38,10 @@ DEFAULT_STACK = 8
 
 
 def stackable(cfg: TrainConfig) -> bool:
-    """Runs of this config can share a stack: a chunked (diffusion) method, Sobolev term (if any) in jvp mode."""
-    return cfg.chunked and (not cfg.uses_sobolev or cfg.sobolev.mode == "jvp")
+    """Runs of this config can share a stack: the method's family opts in (``Policy.stackable``: the diffusion
+    U-Net), its Sobolev term (if any) in jvp mode. Other families (a chunked plugin that is no diffusion
+    policy, the MLPs) train each run alone instead of reaching for a U-Net they do not have."""
+    return bool(getattr(cfg.policy_class, "stackable", False)) and (not cfg.uses_sobolev or cfg.sobolev.mode == "jvp")
 
 
 def stack_key(task: str, cfg: TrainConfig) -> tuple:

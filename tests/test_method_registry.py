@@ -135,3 +135,22 @@ def test_a_plugin_file_registers_a_method_under_plugin_and_its_old_name(tmp_path
         for m in set(sys.modules) - before:
             if m.startswith("sdp_task_module_"):
                 sys.modules.pop(m)
+
+
+def test_stacking_is_a_capability_a_family_opts_into():
+    """The runner stacks runs only of a family that says it can (the diffusion U-Net); a chunked family that
+    does not (here the diffusion family with the capability switched off, as a plugin of another kind would
+    be) trains each run alone instead of failing in the stacker."""
+    from sdp_cli.policy.config import TrainConfig
+    from sdp_cli.train_stack import stackable
+
+    class SoloChunks(DiffusionUnetPolicy):
+        stackable = False
+
+    register_method("toy_solo_chunks", SoloChunks, sobolev=False)
+    try:
+        assert stackable(TrainConfig.of(method="dp")) and stackable(TrainConfig.of(method="sdp"))
+        assert not stackable(TrainConfig.of(method="toy_solo_chunks"))
+        assert not stackable(TrainConfig.of(method="pddp"))
+    finally:
+        _REGISTRY.pop("toy_solo_chunks", None)

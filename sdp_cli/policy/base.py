@@ -71,6 +71,9 @@ class Policy(nn.Module):
     #: plans chunks of ``T_h`` actions from ``(x, u_prev, xi)`` (Algorithm 2: ``predict_chunk``) rather
     #: than one control per state (``act``); rollouts, ``T_a`` options and the estimate follow it
     chunked: ClassVar[bool] = False
+    #: the family can train several runs as one stacked network (:mod:`sdp_cli.train_stack`; ``sdp pipeline
+    #: --run --stack``); a family opts in, the others train each run alone
+    stackable: ClassVar[bool] = False
 
     def __init__(self, config: TrainConfig, dims: dict):
         super().__init__()
@@ -117,12 +120,12 @@ class Policy(nn.Module):
 
     def sampler_options(self, k_rollout: int | None = None) -> dict:
         """The validated sampler keywords of :meth:`plan`; a family without a sampler takes none."""
-        if self.chunked:
+        if self.chunked and hasattr(self, "K"):       # a chunked family with a sampler of K steps
             return ChunkPlanning.sampler_options(self, k_rollout)
         if k_rollout is not None:
             from sdp_cli.errors import SdpError
 
-            raise SdpError(f"k_rollout (denoising steps at rollout) applies to chunked diffusion policies; "
+            raise SdpError(f"k_rollout (denoising steps at rollout) applies to diffusion policies; "
                            f"{self.method!r} has no sampler")
         return {}
 

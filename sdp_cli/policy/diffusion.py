@@ -80,6 +80,7 @@ class DiffusionUnetPolicy(Policy):
     """
 
     chunked = True
+    stackable = True    # sdp_cli.train_stack trains several runs of this family as one stacked U-Net
 
     def __init__(self, config: TrainConfig, dims: dict):
         super().__init__(config, dims)
