@@ -4,7 +4,7 @@
 #   aligator/  libaligator 0.19.1 (aligator's C++ library, no Python bindings) with libpinocchio 4.1.0, Eigen and
 #              urdfdom headers; bench/anchors/proxddp_solve.cpp is built against it into bench/anchors/build/
 #
-#   bash bench/anchors/setup.sh        # about 3 minutes (the C++ build is most of it), 2.9 GB
+#   bash bench/anchors/setup.sh        # about 4 minutes on a new machine (pip 2.5, the C++ build 1), 3.3 GB
 #
 # Why two: crocoddyl 3.2.1's wheels are built against libpinocchio 4.0.0 (with pin 4.1 they load but crash,
 # docs/benchmarks.md), and libaligator 0.19.1's against libpinocchio 4.1.0: installed beside pin 4.0.0 (which
