@@ -147,6 +147,21 @@ def _option_param(name: str, required: tuple[str, ...]):
                              annotation=Annotated[Optional[base], info]), parse
 
 
+def _with_params(wrapper: Callable, fn: Callable, injected: str, params: list) -> Callable:
+    """Give ``wrapper`` (which calls ``fn`` with ``injected=...``) the signature typer reads: ``fn``'s own
+    parameters but ``injected``, with the generated ``params``; required ones first, each group in order."""
+    import inspect
+
+    own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != injected]
+    req = lambda ps: [p for p in ps if p.default is inspect.Parameter.empty]          # noqa: E731
+    opt_ = lambda ps: [p for p in ps if p.default is not inspect.Parameter.empty]     # noqa: E731
+    ordered = req(own) + req(params) + opt_(own) + opt_(params)
+    wrapper.__signature__ = inspect.Signature([p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in ordered])
+    wrapper.__annotations__ = {p.name: p.annotation for p in ordered}
+    del wrapper.__wrapped__
+    return wrapper
+
+
 def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[[dict], None] | None = None) -> Callable:
     """Give a command every training option of :class:`~sdp_cli.policy.config.TrainConfig` as a flag (one name
     each: ``--horizon``, ``--sobolev-alpha``, ...; grouped by section in ``--help``), so that ``sdp train`` and
@@ -177,16 +192,7 @@ def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[
                 check(given)
             return fn(**kwargs, train=TrainConfig.of(**given))
 
-        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "train"]
-        # typer reads __signature__: the command's own required options first, then the training options
-        ordered = ([p for p in own if p.default is inspect.Parameter.empty]
-                   + [p for p in params if p.default is inspect.Parameter.empty]
-                   + [p for p in own if p.default is not inspect.Parameter.empty]
-                   + [p for p in params if p.default is not inspect.Parameter.empty])
-        wrapper.__signature__ = inspect.Signature([p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in ordered])
-        wrapper.__annotations__ = {p.name: p.annotation for p in ordered}
-        del wrapper.__wrapped__
-        return wrapper
+        return _with_params(wrapper, fn, "train", params)
 
     return decorate
 
@@ -235,12 +241,6 @@ def with_loop_rollout_options(cls=None) -> Callable:
                                  if option_kind(f, cls)[1] is not None else value)
             return fn(**kwargs, rollout=cls(**given))
 
-        own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != "rollout"]
-        ordered = ([p for p in own if p.default is inspect.Parameter.empty] + params
-                   + [p for p in own if p.default is not inspect.Parameter.empty])
-        wrapper.__signature__ = inspect.Signature([p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in ordered])
-        wrapper.__annotations__ = {p.name: p.annotation for p in ordered}
-        del wrapper.__wrapped__
-        return wrapper
+        return _with_params(wrapper, fn, "rollout", params)
 
     return decorate

@@ -302,24 +302,24 @@ class DDPSolver(GainsMixin):
             converged[idx[done]] = True
             status[idx[done]] = "converged"
             # an augmented-Lagrangian subproblem solved, the constraints not yet met: update lam, rho, inner tol
-            outer = stationary & ~done & (stop <= inner_tol[idx]) if task.n_h else np.zeros(len(idx), dtype=bool)
+            solved = stationary & ~done & (stop <= inner_tol[idx]) if task.n_h else np.zeros(len(idx), dtype=bool)
             # an update that changes nothing (no constraint violated, the multipliers already mu) only tightens the
             # inner tolerance and steps in the same iteration: it used to take an iteration without a step (6 of 20
             # on quadrotor-0, whose constraints are inactive); the iterates are the same
-            noop = outer & (viol <= al.H_TOL)
+            noop = solved & (viol <= al.H_TOL)
             if noop.any():
                 noop[noop] = np.all(al.multipliers(d["h"][noop], lam[idx[noop]], rho[idx[noop]]) == lam[idx[noop]],
                                     axis=(1, 2))
-                inner_tol[idx[noop]] = np.maximum(self.tol, inner_tol[idx[noop]] * al.INNER_FACTOR)
-                viol_prev[idx[noop]] = viol[noop]          # (as the update did: the next one compares with it)
-                outer &= ~noop
+            outer = solved & ~noop
             if outer.any():
                 o = idx[outer]
                 lam[o] = al.multipliers(d["h"][outer], lam[o], rho[o])
                 slow = viol[outer] > al.VIOL_DECREASE * viol_prev[o]
                 rho[o[slow]] = np.minimum(al.RHO_MAX, rho[o[slow]] * al.RHO_FACTOR)
-                viol_prev[o] = viol[outer]
-                inner_tol[o] = np.maximum(self.tol, inner_tol[o] * al.INNER_FACTOR)
+            if solved.any():          # every solved subproblem, updated or not: the next one's tolerance
+                c = idx[solved]
+                viol_prev[c] = viol[solved]
+                inner_tol[c] = np.maximum(self.tol, inner_tol[c] * al.INNER_FACTOR)
             out_of_iter = iters[idx] >= self.max_iter
             status[idx[out_of_iter & ~done]] = f"not converged: {self.max_iter} iterations (the cap)"
             status[idx[bad & ~done]] = "not converged: non-finite cost"
