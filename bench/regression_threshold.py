@@ -63,8 +63,9 @@ def one(variant: str, argv: list[str]) -> None:
     if variant == "flipped":
         import sdp_cli.policy.diffusion as diffusion
 
-        orig = diffusion.sobolev_term
-        diffusion.sobolev_term = lambda mode, f, d_in, J, *a, **kw: orig(mode, f, d_in, -J, *a, **kw)
+        orig = diffusion.DiffusionUnetPolicy.loss_from   # the jvp-mode loss of every run, solo or stacked
+        diffusion.DiffusionUnetPolicy.loss_from = lambda self, d, y, ydots: orig(
+            self, {**d, "J": -d["J"]} if "J" in d else d, y, ydots)
     from sdp_cli.cli import app
 
     app(argv, standalone_mode=True)

@@ -1,4 +1,4 @@
-"""Run-steps per second of R U-Nets stacked in one module (sdp_cli.policy.stacked_unet) against R solo networks,
+"""Run-steps per second of R U-Nets stacked in one module (sdp_cli.policy.unet, members=R) against R solo networks,
 measured side by side in one run (issue "Many runs at once").
 
     python bench/stacked_train.py [--stacks 1,5,10,25] [--batches 16,64] [--shapes ur5,quadrotor,double_pendulum]
@@ -8,14 +8,14 @@ A *network step* of one run: the loss (DP: eq. (2)'s regression of the denoised 
 jvp-mode Sobolev term, the network's hand-written tangent propagation along one random state direction),
 backward, gradient clipping, AdamW and an EMA update, on synthetic normalized batches of the given shape
 (A actions, n_cond condition, T_h 32 or 16, the paper's U-Net [24, 24, 32, 32]). Solo: R separate networks
-stepped one after the other (what R runs in one process cost today); stacked: one StackedUnet1D of R members
+stepped one after the other (what R runs in one process cost today); stacked: one ConditionalUnet1D of R members
 and one optimizer over it. Both are timed round-robin; the median per configuration is printed with the ratio
 (stacked run-steps/s over solo run-steps/s). The stacked step here clips and schedules all members alike; the
 per-member clipping, schedules and random streams of a stacked trainer add a few small ops per step.
 
 ``--trainer``: instead, the trainer's own steps on a real task's shapes: one step of R runs of
-``sdp_cli.train_stack.Stack`` (per-member draws, the stacked network, each member's own clipping, AdamW and
-EMA, as ``sdp pipeline --run`` trains them) against R steps of ``sdp_cli.train.train_step`` (a solo run's),
+``sdp_cli.train_step.Stack`` (per-member draws, the stacked network, each member's own clipping, AdamW and
+EMA, as ``sdp pipeline --run`` trains them) against R steps of ``sdp_cli.train_step.step`` of one run (``OneRun``),
 both measured by ``sdp_cli.estimate`` (``stacked_step_seconds``, ``step_seconds``) in this one run, and beside
 them the solo step as it was when the issue was filed (38d2c04: AdamW's foreach path, diffusers' per-tensor EMA;
 the issue's goal is >= 3x that).
@@ -29,8 +29,7 @@ import time
 
 import torch
 
-from sdp_cli.policy.stacked_unet import StackedUnet1D
-from sdp_cli.policy.unet import ConditionalUnet1D
+from sdp_cli.policy.unet import ConditionalUnet1D, stack_members
 
 #: (A, n_cond, T_h): fig1's UR5 (12 joint positions; xi 6 + o 24), quadrotor (4 rotor thrusts; xi 3 + o 17),
 #: fig2's double pendulum (2 torques; xi 2 + o 6, T_h 16)
@@ -80,7 +79,7 @@ def setup(R, B, shape, sobolev, stacked, device):
     torch.manual_seed(0)
     nets = [ConditionalUnet1D(A, nc, **ARCH) for _ in range(R)]
     if stacked:
-        nets = [StackedUnet1D.from_members(nets, action_dim=A, cond_dim=nc, **ARCH)]
+        nets = [stack_members(nets)]
     nets = [n.to(device) for n in nets]
     steps = []
     for net, b in zip(nets, batches(R, B, A, nc, T, stacked, device)):
@@ -99,7 +98,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--trainer", action="store_true", help="the trainer's steps (sdp_cli.train_stack.Stack)")
+    ap.add_argument("--trainer", action="store_true", help="the trainer's steps (sdp_cli.train_step.Stack)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)

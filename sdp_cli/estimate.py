@@ -99,12 +99,15 @@ def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Gener
 
 def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
                  max_s: float = 5.0) -> float:
-    """Measured seconds of one training step (loss, backward, clipping, AdamW, EMA); median of the
-    steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
+    """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
+    clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
+    from types import SimpleNamespace
+
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
-    from sdp_cli.train import ema_for, optimizer_for, train_step
+    from sdp_cli.train import ema_for, optimizer_for
+    from sdp_cli.train_step import OneRun, step as train_step
 
     task = get_task(task_name)
     cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
@@ -116,10 +119,13 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     gen = torch.Generator().manual_seed(0)
     batch = _synthetic_batch(method, dims, T_h, B, gen, device)
     g = torch.Generator(device=device).manual_seed(0)
+    run = SimpleNamespace(policy=policy, cfg=cfg, opt=opt, ema=ema, gen=g, sched=None, done=False, step=0,
+                          next_batch=lambda: batch)
+    group = OneRun(run)
 
     def step():   # the trainer's step (without its LR schedule: a scalar update)
-        loss, _, _ = train_step(policy, batch, opt, None, ema, g, cfg.optim.grad_clip)
-        loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
+        for loss, _, _ in train_step(group):
+            loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
     return _median_seconds(step, max_s)
 
@@ -157,7 +163,7 @@ def _median_seconds(step, max_s: float) -> float:
 
 def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
                          device="cpu", max_s: float = 5.0) -> float:
-    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_stack.Stack`, the
+    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_step.Stack`, the
     trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
     synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up)."""
     from types import SimpleNamespace
@@ -166,7 +172,7 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
     from sdp_cli.train import ema_for, optimizer_for
-    from sdp_cli.train_stack import Stack
+    from sdp_cli.train_step import Stack, step as train_step
 
     task = get_task(task_name)
     cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
@@ -178,14 +184,14 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
         opt = optimizer_for(cfg, pol.parameters())
         gen = torch.Generator().manual_seed(r)
         batch = _synthetic_batch(method, dims, T_h, B, gen, device)
-        runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, device=torch.device(device),
+        runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, step=0, device=torch.device(device),
                                     sched=torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0),
                                     ema=ema_for(cfg, pol.parameters()),
                                     next_batch=(lambda b=batch: b)))
     stack = Stack(runs)
 
     def step():
-        for loss, _, _ in stack.step():
+        for loss, _, _ in train_step(stack):
             loss.detach().item()
 
     return _median_seconds(step, max_s)

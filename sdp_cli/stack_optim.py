@@ -1,5 +1,5 @@
-"""Every member's gradient clipping, AdamW step and EMA update of a stack (:mod:`sdp_cli.train_stack`) in a few
-whole-stack operations.
+"""Every member's gradient clipping, AdamW step and EMA update of a stack (:class:`sdp_cli.train_step.Stack`) in a
+few whole-stack operations.
 
 A solo run's optimisation touches its ~200 parameter tensors one by one (``clip_grad_norm_``, AdamW with
 ``foreach``, diffusers' ``EMAModel``): on a CPU that is ~9 ms of per-tensor overhead a step for ~0.3 M weights,

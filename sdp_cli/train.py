@@ -49,32 +49,6 @@ def resolve_device(device: str) -> torch.device:
     return dev
 
 
-class Diverged(SdpError):
-    """The loss of a training step is not finite (the trainer names the step)."""
-
-    def __init__(self, loss: float):
-        super().__init__(f"training diverged (loss {loss})")
-        self.loss = loss
-
-
-def train_step(policy, batch: dict, opt, lr_scheduler, ema, generator: torch.Generator | None, grad_clip: float):
-    """One optimisation step, the same in the trainer and in the estimate's timing: loss
-    (:meth:`Policy.compute_loss`), backward, gradient-norm clipping, AdamW, LR schedule (``None``: none),
-    EMA. Returns ``(loss, parts, grad_norm)``; raises :class:`Diverged` before touching the weights when the
-    loss is not finite."""
-    loss, parts = policy.compute_loss(batch, generator)
-    if not torch.isfinite(loss):
-        raise Diverged(loss.item())
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    gnorm = torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip)
-    opt.step()
-    if lr_scheduler is not None:
-        lr_scheduler.step()
-    ema.step(policy.parameters())
-    return loss, parts, gnorm
-
-
 def sobolev_scale_of(policy, tensors: dict) -> float:
     """The Sobolev term's factor on this dataset: :func:`balance_scale` (``sobolev_balance``) or 1."""
     cfg = policy.config
@@ -208,9 +182,9 @@ def _restore(prev: dict, policy, opt, sched, ema, gen, dev, ck_path: Path, out: 
 
 class Run:
     """One training run's state between steps: config, policy, data tensors, optimisation, metrics and step
-    counter, with its checkpoints (:meth:`save`). :func:`train` steps one; :mod:`sdp_cli.train_stack` steps
-    several at once with the same objects, so a stacked run's checkpoints, metrics and resume are a solo run's.
-    :func:`start_run` builds one."""
+    counter, with its checkpoints (:meth:`save`). :func:`drive` steps one alone (:func:`train`) or several as one
+    stack (:mod:`sdp_cli.train_stack`) with the same objects and the same step (:func:`sdp_cli.train_step.step`),
+    so a stacked run's checkpoints, metrics and resume are a solo run's. :func:`start_run` builds one."""
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -335,37 +309,54 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
           init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
           on_step: Callable[[int], None] | None = None) -> Path:
     """Train and return the path of the final checkpoint (see the module docstring): :func:`start_run`, then
-    :func:`train_step` after :meth:`Run.next_batch` and :meth:`Run.record` until the last step, checkpointing
-    on Ctrl-C / SIGTERM at a step boundary."""
+    :func:`drive` of the run alone (:class:`sdp_cli.train_step.OneRun`) until its last step, checkpointing on
+    Ctrl-C / SIGTERM at a step boundary."""
+    from sdp_cli.train_step import OneRun
+
     run = start_run(data, out, cfg, device, resume, init)
     log(run.describe())
-    run.t0 = run.last_ck = time.perf_counter()
-    run.policy.train()
     bar = _progress(progress)
-    from sdp_cli.interrupts import deferred
+    with bar:
+        task_id = bar.add_task(run.cfg.method, total=run.total, completed=run.step, info="")
 
-    with deferred() as interrupt, _discard_if_failed_at_start(run.out, run.created, run.ck_path):
-        with bar:
-            task_id = bar.add_task(run.cfg.method, total=run.total, completed=run.step, info="")
-            while not run.done:
-                batch = run.next_batch()
-                try:
-                    loss, parts, gnorm = train_step(run.policy, batch, run.opt, run.sched, run.ema, run.gen,
-                                                    run.cfg.optim.grad_clip)
-                except Diverged as e:
-                    raise SdpError(f"training diverged at step {run.step} (loss {e.loss}); "
-                                   f"try a lower --lr or --sobolev-alpha") from None
-                row = run.record(loss, parts, gnorm)
-                if run.step % 10 == 0 or run.done:
-                    bar.update(task_id, completed=run.step, info=f"loss {row['loss']} dp {row['dp']} "
-                                                                 f"sob {row['sobolev']} lr {row['lr']}")
-                if on_step is not None:
-                    on_step(run.step)
-                interrupt.check(run.save)   # Ctrl-C / SIGTERM: stop at this step boundary
-        run.save()   # a fresh run whose only checkpoint cannot be written (a full disk) leaves no folder either
+        def show(run, row):
+            if run.step % 10 == 0 or run.done:
+                bar.update(task_id, completed=run.step, info=f"loss {row['loss']} dp {row['dp']} "
+                                                             f"sob {row['sobolev']} lr {row['lr']}")
+
+        drive(OneRun(run), on_step, show)
     log(f"done: {run.step} steps, final loss {run.metrics.rows[-1]['loss'] if run.metrics.rows else 'n/a'}, "
         f"{time.perf_counter() - run.t0:.1f} s; checkpoint {run.ck_path}")
     return run.ck_path
+
+
+def drive(group, on_step: Callable[[int], None] | None = None,
+          on_row: Callable[[Run, dict], None] | None = None) -> None:
+    """Step the runs of ``group`` (:mod:`sdp_cli.train_step`: one run alone or a stack) until every one is done,
+    recording each run's metrics and checkpoints; ``on_step(step)`` after each step (the furthest run's step),
+    ``on_row(run, row)`` after each run's metrics row. Ctrl-C / SIGTERM saves every run at a step boundary; a
+    fresh run that fails before its first checkpoint leaves no folder; each run's final checkpoint at the end."""
+    from sdp_cli.interrupts import deferred
+    from sdp_cli.train_step import step
+
+    runs = group.runs
+    for run in runs:
+        run.t0 = run.last_ck = time.perf_counter()
+        run.policy.train()
+    with deferred() as interrupt, contextlib.ExitStack() as guards:
+        for run in runs:
+            guards.enter_context(_discard_if_failed_at_start(run.out, run.created, run.ck_path))
+        while not all(r.done for r in runs):
+            for run, res in zip(runs, step(group)):
+                if res is not None:
+                    row = run.record(*res)
+                    if on_row is not None:
+                        on_row(run, row)
+            if on_step is not None:
+                on_step(max(r.step for r in runs))
+            interrupt.check(lambda: [r.save() for r in runs])   # stop at this step boundary
+        for run in runs:   # a fresh run whose only checkpoint cannot be written (a full disk) leaves no folder
+            run.save()
 
 
 @contextlib.contextmanager

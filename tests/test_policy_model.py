@@ -64,61 +64,64 @@ def test_jvp_and_autograd_paths_give_the_same_sdp_loss(state, path):
     A = 2 if state else 1
     net = make_policy(cfg, A, 3, 2, 2)
     batch = _batch(A=A, state=state)
-    import sdp_cli.losses.sobolev as sob
     l1, p1 = net.compute_loss(batch, torch.Generator().manual_seed(0))
-    orig = sob.sobolev_input_projection
-    sob_calls = {}
+    # the same draws, the tangent by torch.func.jvp of the network as a function of the state perturbation
+    d = net.draw(batch, torch.Generator().manual_seed(0))
+    (w, _, _), = d["projections"]
+    k, rest = d["k"], d["x"][:, 1:]
+    rest_jac = net._rest_jac(batch, k)
 
-    def no_manual(f, d_in, J, n_proj=1, generator=None, f_jvp=None):
-        sob_calls["n"] = 1
-        return orig(f, d_in, J, n_proj, generator, None)
-    sob.sobolev_input_projection = no_manual
-    try:
-        l2, p2 = net.compute_loss(batch, torch.Generator().manual_seed(0))
-    finally:
-        sob.sobolev_input_projection = orig
-    assert sob_calls
+    def f(delta):
+        o = batch["obs"] + torch.einsum("btoi,bi->bto", batch["obs_jac"], delta)
+        a = batch["a_hist"] + (torch.einsum("btai,bi->bta", batch["a_hist_jac"], delta) if state else 0)
+        r = rest if rest_jac is None else rest + torch.einsum("btai,bi->bta", rest_jac, delta)
+        return net(torch.cat([a, r], dim=1), k, batch["xi"], o)
+
+    y, yd = jvp(f, (torch.zeros(6, 2),), (w,))
+    l2, p2 = net.loss_from(d, y, [yd])
     torch.testing.assert_close(l1, l2, rtol=1e-5, atol=1e-6)
     assert p1["sobolev"] > 0
 
 
 def test_total_path_is_the_derivative_through_the_noisy_chunk():
-    """sobolev_path "total": both derivative paths the loss uses (autograd ``f`` and the hand-written
-    ``f_jvp``) equal the brute-force Jacobian of the network output w.r.t. delta with
-    tau_k(delta) = sqrt(alpha_bar_k) (tau_0 + J delta) + sqrt(1 - alpha_bar_k) eps; "cond" differs."""
+    """sobolev_path "total": both derivative paths the loss uses (autograd ``f`` of the vjp mode and the
+    hand-written tangents of the jvp mode's :meth:`draw`) equal the brute-force Jacobian of the network output
+    w.r.t. delta with tau_k(delta) = sqrt(alpha_bar_k) (tau_0 + J delta) + sqrt(1 - alpha_bar_k) eps; "cond"
+    differs."""
     import sdp_cli.policy.diffusion as diffusion
 
     torch.manual_seed(0)
     net = None
     got = {}
+    orig = diffusion.sobolev_output_projection
 
-    def capture(mode, f, d_in, J, n_proj=1, generator=None, f_jvp=None):
-        got["f"], got["f_jvp"] = f, f_jvp
-        return diffusion.__dict__["_orig_sobolev_term"](mode, f, d_in, J, n_proj, generator, f_jvp)
+    def capture(f, d_in, J, n_proj=1, generator=None):
+        got["f"] = f
+        return orig(f, d_in, J, n_proj, generator)
 
-    diffusion._orig_sobolev_term = diffusion.sobolev_term
     jacs = {}
     try:
-        diffusion.sobolev_term = capture
+        diffusion.sobolev_output_projection = capture
         for path in ("total", "cond"):
-            cfg = TrainConfig.of(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8,
-                              sobolev_path=path)
-            policy = make_policy(cfg, 1, 3, 2, 2).double()   # this path's config, the same weights
+            opts = dict(method="sdp", horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, sobolev_path=path)
+            policy = make_policy(TrainConfig.of(sobolev_mode="vjp", **opts), 1, 3, 2, 2).double()
+            jvp_policy = make_policy(TrainConfig.of(**opts), 1, 3, 2, 2).double()
             if net is None:
                 net = policy
-            policy.load_state_dict(net.state_dict())
-            sch = make_scheduler(cfg)
+            policy.load_state_dict(net.state_dict())      # this path's config, the same weights
+            jvp_policy.load_state_dict(net.state_dict())
+            sch = make_scheduler(policy.config)
             b = {k: v.double() for k, v in _batch(B=3).items()}
             policy.compute_loss(b, torch.Generator().manual_seed(5))
             J_f = torch.autograd.functional.jacobian(got["f"], torch.zeros(3, 2, dtype=torch.float64))
             J_f = torch.stack([J_f[i, :, :, i] for i in range(3)])           # (B, T_h - 1, A, ndx)
-            w = torch.tensor([[0.6, -0.8]] * 3, dtype=torch.float64)
-            _, yd = got["f_jvp"](w)
-            torch.testing.assert_close(yd, torch.einsum("btai,bi->bta", J_f, w))
+            d = jvp_policy.draw(b, torch.Generator().manual_seed(5))       # the same noise and steps first
+            (w, cond_d, tau_d), = d["projections"]
+            _, yd = jvp_policy.unet.forward_jvp(d["x"], tau_d, d["k"], d["cond"], cond_d)
+            torch.testing.assert_close(yd[:, 1:], torch.einsum("btai,bi->bta", J_f, w))
             jacs[path] = J_f
     finally:
-        diffusion.sobolev_term = diffusion._orig_sobolev_term
-        del diffusion._orig_sobolev_term
+        diffusion.sobolev_output_projection = orig
     g = torch.Generator().manual_seed(5)
     noise = torch.randn(b["tau0"].shape, generator=g).double()
     k = torch.randint(0, 5, (3,), generator=g)

@@ -1,4 +1,4 @@
-"""R U-Nets stacked in one module (sdp_cli.policy.stacked_unet): each member computes what a solo network with
+"""R U-Nets stacked in one module (sdp_cli.policy.unet, members=R): each member computes what a solo network with
 its weights computes (forward, the hand-written JVP, and the gradients of both), and its weights come back as a
 solo state dict. Checked in float64, where the grouped kernels' other summation order is invisible."""
 
@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from sdp_cli.policy.stacked_unet import StackedUnet1D
-from sdp_cli.policy.unet import ConditionalUnet1D
+from sdp_cli.policy.unet import ConditionalUnet1D, member_state_dict, stack_members
 
 R, A, NC, T, B = 3, 2, 7, 16, 5
 ARCH = dict(action_dim=A, cond_dim=NC, down_dims=(8, 16), kernel_size=5, n_groups=4, step_embed_dim=8)
@@ -16,7 +15,7 @@ ARCH = dict(action_dim=A, cond_dim=NC, down_dims=(8, 16), kernel_size=5, n_group
 def _members():
     torch.manual_seed(0)
     nets = [ConditionalUnet1D(**ARCH).double() for _ in range(R)]
-    return nets, StackedUnet1D.from_members(nets, **ARCH).double()
+    return nets, stack_members(nets).double()
 
 
 def _inputs(n=3):
@@ -31,7 +30,7 @@ def test_each_member_is_a_solo_network_forward_jvp_and_gradients():
     y = st(tau, k, cond)
     ys, yds = st.forward_jvp(tau, tau_d, k, cond, cond_d)
     ((ys ** 2).sum() + (yds ** 2).sum() + (y ** 3).sum()).backward()
-    grads = dict(st.net.named_parameters())
+    grads = dict(st.named_parameters())
     for r, net in enumerate(nets):
         y1 = net(tau[:, r], k[:, r], cond[:, r])
         torch.testing.assert_close(y[:, r], y1, rtol=1e-12, atol=1e-12)
@@ -54,11 +53,11 @@ def test_members_do_not_see_each_other_and_weights_round_trip():
     y2 = st(tau2, k, cond)
     assert torch.equal(y[:, 0], y2[:, 0]) and torch.equal(y[:, 2], y2[:, 2]) and not torch.equal(y[:, 1], y2[:, 1])
     for r, net in enumerate(nets):
-        sd = st.member_state_dict(r)
+        sd = member_state_dict(st, r, net)
         assert sd.keys() == net.state_dict().keys()
         assert all(torch.equal(sd[key], v) for key, v in net.state_dict().items())
     fresh = ConditionalUnet1D(**ARCH).double()
-    fresh.load_state_dict(st.member_state_dict(2))
+    fresh.load_state_dict(member_state_dict(st, 2, fresh))
     torch.testing.assert_close(fresh(tau[:, 2], k[:, 2], cond[:, 2]), y[:, 2], rtol=1e-12, atol=1e-12)
 
 

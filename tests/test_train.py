@@ -255,13 +255,14 @@ def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypat
     import sdp_cli.train as tr
 
     seen = []
-    orig = tr.train_step
+    orig = tr.Run.next_batch
 
-    def recording(policy, batch, *a, **kw):
+    def recording(run):
+        batch = orig(run)
         seen.append(next(iter(batch.values())).clone())
-        return orig(policy, batch, *a, **kw)
+        return batch
 
-    monkeypatch.setattr(tr, "train_step", recording)
+    monkeypatch.setattr(tr.Run, "next_batch", recording)
     c = cfg(method, epochs=2, batch_size=16)
     path = train(data["ok"], tmp_path / "r", c, device="cpu", progress=False, log=quiet)
     ck = load_checkpoint(path)

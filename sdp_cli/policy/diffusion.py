@@ -29,11 +29,11 @@ from diffusers import DDPMScheduler
 
 from sdp_cli.data.normalizer import Normalizer
 from sdp_cli.errors import SdpError
-from sdp_cli.losses.sobolev import sobolev_term
+from sdp_cli.losses.sobolev import random_unit, sobolev_output_projection
 from sdp_cli.policy.base import Policy, as_tensor
 if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
     from sdp_cli.policy.config import TrainConfig
-from sdp_cli.policy.unet import ConditionalUnet1D
+from sdp_cli.policy.unet import ConditionalUnet1D, member_view, stack_members
 
 
 def make_scheduler(cfg: TrainConfig) -> DDPMScheduler:
@@ -129,28 +129,94 @@ class DiffusionUnetPolicy(Policy):
         :attr:`sobolev_scale` (:func:`~sdp_cli.losses.sobolev.balance_scale`), then by ``sobolev_alpha``.
         ``sobolev_path == "total"`` also differentiates through the noisy rows of ``tau_k`` (tangent
         ``sqrt(alpha_bar_k) J`` on rows ``T_o:``); "cond" holds them fixed.
+
+        Without the Sobolev term or in its jvp mode this is :meth:`draw`, the U-Net on the draw's inputs and
+        :meth:`loss_from`: the same three a stack of runs (:class:`StackedDiffusion`) applies member by member.
         """
-        cfg, scheduler = self.config.sobolev, self.noise_scheduler
-        tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
-        B, T_o = tau0.shape[0], self.T_o
+        if self.config.uses_sobolev and self.config.sobolev.mode == "vjp":
+            return self._vjp_loss(batch, generator)
+        d = self.draw(batch, generator)
+        if not d["projections"]:
+            return self.loss_from(d, self.unet(d["x"], d["k"], d["cond"]), [])
+        y, ydots = None, []
+        for _, cond_d, tau_d in d["projections"]:
+            y, yd = self.unet.forward_jvp(d["x"], tau_d, d["k"], d["cond"], cond_d)
+            ydots.append(yd)
+        return self.loss_from(d, y, ydots)
+
+    def _noised(self, batch: dict, generator):
+        """The diffusion draws of a step: noise, then steps ``k (B,)``; ``(k, tau_k (B, T_h, A))``."""
+        tau0 = batch["tau0"]
         dev = tau0.device
         gdev = generator.device if generator is not None else dev   # CPU generator: same draws on a GPU
         noise = torch.randn(tau0.shape, generator=generator, device=gdev).to(dev)
-        k = torch.randint(0, self.K, (B,), generator=generator, device=gdev).to(dev)
-        tau_k = scheduler.add_noise(tau0, noise, k)
-        rest = tau_k[:, T_o:]
-        if not self.config.uses_sobolev:
-            x = torch.cat([a_hist, rest], dim=1)
-            pred = self(x, k, xi, obs)[:, T_o:]
-            dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-            return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dev)}
+        k = torch.randint(0, self.K, (tau0.shape[0],), generator=generator, device=gdev).to(dev)
+        return k, self.noise_scheduler.add_noise(tau0, noise, k)
 
+    def _rest_jac(self, batch: dict, k):
+        """``sobolev_path == "total"``: the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k)
+        d tau_0 / dx (rows ``T_o:``); "cond": None."""
+        if self.config.sobolev.path != "total":
+            return None
+        tau0 = batch["tau0"]
+        sab = self.noise_scheduler.alphas_cumprod.to(tau0.device)[k].sqrt().to(tau0.dtype)
+        return sab[:, None, None, None] * batch["jac"][:, self.T_o:]
+
+    def draw(self, batch: dict, generator: torch.Generator | None = None) -> dict:
+        """A step's random draws and the U-Net's inputs (no Sobolev term, or its jvp mode): noise, diffusion
+        steps, then the Sobolev directions ``w (n_s, ndx)``, in this order from ``generator``.
+
+        Returns ``B``, ``x (B, T_h, A)`` (history inpainted), ``k (B,)``, ``cond (B, n_cond)``,
+        ``target (B, T_h - T_o, A)`` and ``projections``: per direction ``(w, cond_d (n_s, n_cond),
+        tau_d (n_s, T_h, A) or None)``, the tangents of the condition and of the input chunk; with the Sobolev
+        term also ``n_s`` (the first samples it uses, ``sobolev_fraction``), ``J (n_s, d_out, ndx)`` and
+        ``w_cap`` (``sobolev_cap``'s weights or None)."""
+        s, T_o = self.config.sobolev, self.T_o
+        tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
+        B = tau0.shape[0]
+        k, tau_k = self._noised(batch, generator)
+        rest = tau_k[:, T_o:]
+        d = {"B": B, "x": torch.cat([a_hist, rest], dim=1), "k": k, "cond": torch.cat([xi, obs.flatten(1)], -1),
+             "target": tau0[:, T_o:], "projections": []}
+        if not self.config.uses_sobolev:
+            return d
+        n_s = max(1, round(s.fraction * B))
+        J = batch["jac"][:n_s, T_o:]
+        d.update(n_s=n_s, J=J.reshape(n_s, -1, J.shape[-1]), w_cap=batch.get("sob_weight"))
+        rest_jac = self._rest_jac(batch, k)
+        for _ in range(s.n_proj):
+            w = random_unit((n_s, J.shape[-1]), generator, tau0.device, J.dtype)
+            o_d, tau_d = chunk_tangents(w, batch["obs_jac"], a_hist, batch.get("a_hist_jac"), rest, rest_jac)
+            d["projections"].append((w, torch.cat([torch.zeros_like(xi[:n_s]), o_d.flatten(1)], dim=-1), tau_d))
+        return d
+
+    def loss_from(self, d: dict, y: torch.Tensor, ydots: list):
+        """``(loss, parts)`` of a :meth:`draw` ``d`` from the U-Net's output ``y (B, T_h, A)`` and, per
+        projection, its tangent ``ydot (n_s, T_h, A)``: the regression term (eq. (2)) plus ``alpha`` times the
+        balanced Sobolev term (input projection: ``(d_in / d_out) ||J w - ydot||^2``, averaged over the
+        projections)."""
+        T_o = self.T_o
+        dp = ((y[:, T_o:] - d["target"]) ** 2).mean()
+        if not self.config.uses_sobolev:
+            return dp, {"dp": dp.detach(), "sobolev": torch.zeros((), device=dp.device)}
+        n, J = d["n_s"], d["J"]
+        term = 0.0
+        for (w, _, _), yd in zip(d["projections"], ydots):
+            target = torch.einsum("boi,bi->bo", J, w)
+            term = term + ((target - yd[:, T_o:].reshape(n, -1)) ** 2).sum(-1)
+        term = term * (J.shape[-1] / J.shape[1]) / len(ydots)
+        wc = d["w_cap"]
+        sob = self.sobolev_scale * (term.mean() if wc is None else (wc[:n] * term).mean())
+        return dp + self.config.sobolev.weight * sob, {"dp": dp.detach(), "sobolev": sob.detach()}
+
+    def _vjp_loss(self, batch: dict, generator):
+        """The Sobolev term by output projection (eq. (6), reverse over reverse; ``sobolev_mode vjp``)."""
+        cfg, T_o = self.config.sobolev, self.T_o
+        tau0, a_hist, obs, xi = batch["tau0"], batch["a_hist"], batch["obs"], batch["xi"]
+        k, tau_k = self._noised(batch, generator)
+        rest = tau_k[:, T_o:]
         obs_jac, a_hist_jac = batch["obs_jac"], batch.get("a_hist_jac")
-        # "total": the noisy rows depend on x_t too, d tau_k / dx = sqrt(alpha_bar_k) d tau_0 / dx
-        rest_jac = None
-        if cfg.path == "total":
-            sab = scheduler.alphas_cumprod.to(dev)[k].sqrt().to(tau0.dtype)
-            rest_jac = sab[:, None, None, None] * batch["jac"][:, T_o:]
+        rest_jac = self._rest_jac(batch, k)
 
         def f(delta):   # delta (B, ndx) -> predicted tau_0 rows T_o: (B, T_h - T_o, A)
             o = obs + torch.einsum("btoi,bi->bto", obs_jac, delta)
@@ -158,21 +224,17 @@ class DiffusionUnetPolicy(Policy):
             r = rest if rest_jac is None else rest + torch.einsum("btai,bi->bta", rest_jac, delta)
             return self(torch.cat([a, r], dim=1), k, xi, o)[:, T_o:]
 
-        # the Sobolev term may use only the first n_s samples of the batch (``sobolev_fraction``, jvp mode)
-        n_s = B if cfg.mode == "vjp" else max(1, round(cfg.fraction * B))
-
-        def f_jvp(w):   # the same derivative along w, by the U-Net's hand-written tangent propagation
-            o_d, tau_d = chunk_tangents(w, obs_jac, a_hist, a_hist_jac, rest, rest_jac)
-            y, yd = self.forward_jvp(torch.cat([a_hist, rest], dim=1), tau_d, k, xi, obs, o_d)
-            return y[:, T_o:], yd[:, T_o:]
-
-        J = batch["jac"][:n_s, T_o:]
-        pred, term = sobolev_term(cfg.mode, f, J.shape[-1], J, cfg.n_proj, generator, f_jvp)
+        J = batch["jac"][:, T_o:]
+        pred, term = sobolev_output_projection(f, J.shape[-1], J, cfg.n_proj, generator)
         dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-        w = batch.get("sob_weight")  # (B,) capped weights of chunks with huge Jacobians (sobolev_cap)
-        sob = self.sobolev_scale * (term.mean() if w is None else (w[:n_s] * term).mean())
-        loss = dp + cfg.weight * sob
-        return loss, {"dp": dp.detach(), "sobolev": sob.detach()}
+        w = batch.get("sob_weight")
+        sob = self.sobolev_scale * (term.mean() if w is None else (w * term).mean())
+        return dp + cfg.weight * sob, {"dp": dp.detach(), "sobolev": sob.detach()}
+
+    @classmethod
+    def stack(cls, policies: list["DiffusionUnetPolicy"]) -> "StackedDiffusion":
+        """R policies of one architecture trained as one network (:class:`StackedDiffusion`)."""
+        return StackedDiffusion(policies)
 
     # ------------------------------------------------------------------ sampling
     @torch.no_grad()
@@ -236,3 +298,59 @@ class DiffusionUnetPolicy(Policy):
         xi_n = self.normalizer.normalize("xi", as_tensor(xi, self.device))
         tau = self.sample(xi_n, obs, a_hist, k_rollout, generator)
         return self.normalizer.unnormalize("action", tau).double().cpu().numpy()
+
+
+class StackedDiffusion:
+    """R diffusion policies of one architecture as one stacked U-Net (:mod:`sdp_cli.policy.unet`,
+    ``members=R``): each policy's U-Net weights become views into the stack's, so its optimiser, EMA and
+    checkpoint stay its own (:mod:`sdp_cli.train_stack`). :meth:`losses` is every member's
+    :meth:`~DiffusionUnetPolicy.loss_from` of its own :meth:`~DiffusionUnetPolicy.draw` through one call of the
+    stacked network (one per Sobolev projection), members with fewer samples padded with zero rows that stay out
+    of their losses."""
+
+    def __init__(self, policies: list[DiffusionUnetPolicy]):
+        self.policies, self.R = policies, len(policies)
+        self.net = stack_members([p.unet for p in policies])
+        stacked = dict(self.net.named_parameters())
+        #: the stacked parameters in every member's ``parameters()`` order (its optimiser's)
+        self.parameters = []
+        for i, pol in enumerate(policies):
+            for name, sp in pol.unet.named_parameters():
+                sp.data = member_view(stacked[name].data, sp.dim(), self.R, i)   # the solo weights live here
+                if i == 0:
+                    self.parameters.append(stacked[name])
+
+    def zero_grad(self) -> None:
+        self.net.zero_grad(set_to_none=True)
+
+    @staticmethod
+    def _pad(parts: list, n: int) -> torch.Tensor:
+        """Stack member tensors ``(n_r, ...)`` into ``(n, R, ...)``, zero rows below each member's own."""
+        ref = next(p for p in parts if p is not None)
+        out = ref.new_zeros((n, len(parts), *ref.shape[1:]))
+        for i, p in enumerate(parts):
+            if p is not None:
+                out[: p.shape[0], i] = p
+        return out
+
+    def losses(self, draws: list) -> list:
+        """``[(loss, parts) or None]`` per member from its draw (None: the member takes no step)."""
+        act = [d for d in draws if d is not None]
+        Bm = max(d["B"] for d in act)
+        x, k, cond = (self._pad([d and d[key] for d in draws], Bm) for key in ("x", "k", "cond"))
+        ydots = [[] for _ in draws]
+        if not act[0]["projections"]:
+            y = self.net(x, k, cond)
+        else:
+            n_max = max(d["n_s"] for d in act)
+            for j in range(len(act[0]["projections"])):
+                pr = [d and d["projections"][j] for d in draws]
+                cond_d = self._pad([p and p[1] for p in pr], n_max)
+                tau_d = (self._pad([p and p[2] for p in pr], n_max) if any(p and p[2] is not None for p in pr)
+                         else None)
+                y, yd = self.net.forward_jvp(x, tau_d, k, cond, cond_d)
+                for i, d in enumerate(draws):
+                    if d is not None:
+                        ydots[i].append(yd[: d["n_s"], i])
+        return [None if d is None else pol.loss_from(d, y[: d["B"], i], ydots[i])
+                for i, (d, pol) in enumerate(zip(draws, self.policies))]

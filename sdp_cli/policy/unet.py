@@ -1,4 +1,4 @@
-"""Conditional 1D U-Net over action chunks, as in diffusion policy (Chi et al.).
+"""Conditional 1D U-Net over action chunks, as in diffusion policy (Chi et al.); one network or R stacked.
 
 Input ``tau_k (B, T_h, A)``, diffusion step ``k (B,)`` and a global condition
 ``cond (B, n_cond)`` (here ``(xi, o_hist)``); output ``(B, T_h, A)``. Structure: a sinusoidal
@@ -7,6 +7,18 @@ block by FiLM (per-channel scale and bias). Residual blocks are
 Conv1d -> GroupNorm -> Mish twice; the down path halves the time axis between levels
 (strided conv), the up path doubles it (transposed conv) and concatenates skip features.
 ``T_h`` must be divisible by ``2^(len(down_dims) - 1)``.
+
+**Stacked (``members=R > 1``)**: R independent U-Nets of one architecture in one module, the training of R runs
+at once (:mod:`sdp_cli.train_stack`): the paper's U-Net is tiny, so a step is mostly per-op overhead and R
+networks stacked cost little more than one. The same layers and the same code, with every layer R-fold:
+convolutions grouped (``groups=R``: member ``r``'s channels are the block ``[r C, (r + 1) C)``), GroupNorm over
+``R x n_groups`` groups (a member's groups never mix with another's), linear layers batched
+(:class:`StackedLinear`, weights ``(R, out, in)``). Shapes gain a member axis: ``tau (B, R, T_h, A)``,
+``k (B, R)``, ``cond (B, R, n_cond)`` -> ``(B, R, T_h, A)`` (the batch axis is shared; members with fewer
+samples are padded by the caller). Member ``r`` computes what a solo network with its weights computes, to float32
+rounding (the grouped kernels sum in another order); :func:`stack_members` builds a stack from solo networks and
+:func:`member_state_dict` gives a member's weights back as a solo state dict (a stacked run's checkpoint is a
+solo one). With ``members=1`` every layer is the plain one: the solo network, its state dict and its numerics.
 
 :meth:`ConditionalUnet1D.forward_jvp` propagates a tangent alongside the primal by hand
 (linear layers run once on the primal and tangent stacked along the batch; GroupNorm and
@@ -57,27 +69,63 @@ def _group_norm_t(gn: nn.GroupNorm, x: torch.Tensor, xd: torch.Tensor | None):
     return _sub_batch(gn, lambda a, b: group_norm_jvp(gn, a, b), x, xd)
 
 
-class StepEmbedding(nn.Module):
-    """Sinusoidal embedding of the diffusion step, then Linear-Mish-Linear: (B,) -> (B, dim)."""
+class StackedLinear(nn.Module):
+    """R independent ``nn.Linear(n_in, n_out)``: ``(..., R, n_in) -> (..., R, n_out)``."""
 
-    def __init__(self, dim: int):
+    def __init__(self, R: int, n_in: int, n_out: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(R, n_out, n_in))
+        self.bias = nn.Parameter(torch.empty(R, n_out))
+        for r in range(R):   # nn.Linear's initialisation, member by member
+            nn.init.kaiming_uniform_(self.weight[r], a=math.sqrt(5))
+            bound = 1 / math.sqrt(n_in) if n_in > 0 else 0
+            nn.init.uniform_(self.bias[r], -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = x.shape[:-2]
+        xr = x.reshape(-1, *x.shape[-2:]).transpose(0, 1)                    # (R, N, in)
+        y = torch.baddbmm(self.bias[:, None], xr, self.weight.transpose(1, 2))  # (R, N, out)
+        return y.transpose(0, 1).reshape(*lead, self.weight.shape[0], self.weight.shape[1])
+
+
+# the layers of R members (R = 1: the plain layer)
+def _linear(R: int, n_in: int, n_out: int) -> nn.Module:
+    return nn.Linear(n_in, n_out) if R == 1 else StackedLinear(R, n_in, n_out)
+
+
+def _conv(R: int, c_in: int, c_out: int, *args, transposed: bool = False) -> nn.Module:
+    return (nn.ConvTranspose1d if transposed else nn.Conv1d)(R * c_in, R * c_out, *args, groups=R)
+
+
+def _member_cat(a: torch.Tensor, b: torch.Tensor, R: int) -> torch.Tensor:
+    """Channel concatenation of two feature maps, member by member: (B, R Ca, L), (B, R Cb, L)."""
+    if R == 1:
+        return torch.cat([a, b], dim=1)
+    B, _, L = a.shape
+    return torch.cat([a.reshape(B, R, -1, L), b.reshape(B, R, -1, L)], dim=2).reshape(B, -1, L)
+
+
+class StepEmbedding(nn.Module):
+    """Sinusoidal embedding of the diffusion step, then Linear-Mish-Linear: (B, [R]) -> (B, [R], dim)."""
+
+    def __init__(self, dim: int, R: int = 1):
         super().__init__()
         half = dim // 2
         freqs = torch.exp(-math.log(10000.0) * torch.arange(half) / max(half - 1, 1))
         self.register_buffer("freqs", freqs, persistent=False)
-        self.mlp = nn.Sequential(nn.Linear(2 * half, 4 * dim), nn.Mish(), nn.Linear(4 * dim, dim))
+        self.mlp = nn.Sequential(_linear(R, 2 * half, 4 * dim), nn.Mish(), _linear(R, 4 * dim, dim))
 
     def forward(self, k: torch.Tensor) -> torch.Tensor:
-        arg = k.float()[:, None] * self.freqs[None]
+        arg = k.float()[..., None] * self.freqs
         return self.mlp(torch.cat([arg.sin(), arg.cos()], dim=-1))
 
 
 class ConvBlock(nn.Sequential):
     """Conv1d -> GroupNorm -> Mish, length preserving."""
 
-    def __init__(self, c_in: int, c_out: int, kernel_size: int, n_groups: int):
-        super().__init__(nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2),
-                         nn.GroupNorm(n_groups, c_out), nn.Mish())
+    def __init__(self, c_in: int, c_out: int, kernel_size: int, n_groups: int, R: int = 1):
+        super().__init__(_conv(R, c_in, c_out, kernel_size, 1, kernel_size // 2),
+                         nn.GroupNorm(R * n_groups, R * c_out), nn.Mish())
 
     def forward_jvp(self, x, xd):
         conv, gn, _ = self
@@ -87,17 +135,22 @@ class ConvBlock(nn.Sequential):
 class FiLMResBlock(nn.Module):
     """Two conv blocks with FiLM conditioning between them, plus a residual path."""
 
-    def __init__(self, c_in: int, c_out: int, cond_dim: int, kernel_size: int, n_groups: int):
+    def __init__(self, c_in: int, c_out: int, cond_dim: int, kernel_size: int, n_groups: int, R: int = 1):
         super().__init__()
-        self.block1 = ConvBlock(c_in, c_out, kernel_size, n_groups)
-        self.block2 = ConvBlock(c_out, c_out, kernel_size, n_groups)
-        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * c_out))
-        self.residual = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
-        self.c_out = c_out
+        self.block1 = ConvBlock(c_in, c_out, kernel_size, n_groups, R)
+        self.block2 = ConvBlock(c_out, c_out, kernel_size, n_groups, R)
+        self.film = nn.Sequential(nn.Mish(), _linear(R, cond_dim, 2 * c_out))
+        self.residual = _conv(R, c_in, c_out, 1) if c_in != c_out else nn.Identity()
+        self.c_out, self.R = c_out, R
+
+    def _split(self, f: torch.Tensor):
+        """FiLM output ``(B, [R], 2 C)`` -> per-channel ``(scale, bias)``, each ``(B, R C, 1)``."""
+        C, B = self.c_out, f.shape[0]
+        return f[..., :C].reshape(B, self.R * C, 1), f[..., C:].reshape(B, self.R * C, 1)
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         h = self.block1(x)
-        scale, bias = self.film(cond).unsqueeze(-1).chunk(2, dim=1)
+        scale, bias = self._split(self.film(cond))
         h = self.block2(scale * h + bias)
         return h + self.residual(x)
 
@@ -105,13 +158,13 @@ class FiLMResBlock(nn.Module):
         h, hd = self.block1.forward_jvp(x, xd)
         m, md = _mish_t(cond, cond_d)
         f, fd = _linear_t(self.film[1], m, md)
-        scale, bias = f.unsqueeze(-1).chunk(2, dim=1)
+        scale, bias = self._split(f)
         g, gd = scale * h + bias, None
         if fd is not None or hd is not None:
             gd = 0
             n = (fd if fd is not None else hd).shape[0]   # tangents cover the first n samples
             if fd is not None:
-                sd, bd = fd.unsqueeze(-1).chunk(2, dim=1)
+                sd, bd = self._split(fd)
                 gd = sd * h[:n] + bd
             if hd is not None:
                 gd = gd + scale[:n] * hd
@@ -121,32 +174,50 @@ class FiLMResBlock(nn.Module):
 
 
 class ConditionalUnet1D(nn.Module):
-    """``forward(tau (B, T_h, A), k (B,), cond (B, n_cond)) -> (B, T_h, A)``."""
+    """``forward(tau (B, T_h, A), k (B,), cond (B, n_cond)) -> (B, T_h, A)``; ``members=R > 1``: R networks,
+    ``(B, R, T_h, A), (B, R), (B, R, n_cond) -> (B, R, T_h, A)`` (see the module docstring)."""
 
     def __init__(self, action_dim: int, cond_dim: int, down_dims=(24, 24, 32, 32), kernel_size: int = 5,
-                 n_groups: int = 8, step_embed_dim: int = 64):
+                 n_groups: int = 8, step_embed_dim: int = 64, members: int = 1):
         super().__init__()
-        self.step_embed = StepEmbedding(step_embed_dim)
+        R = self.R = members
+        #: the constructor's arguments but ``members`` (a stack of these networks: :func:`stack_members`)
+        self.arch = dict(action_dim=action_dim, cond_dim=cond_dim, down_dims=tuple(down_dims),
+                         kernel_size=kernel_size, n_groups=n_groups, step_embed_dim=step_embed_dim)
+        self.step_embed = StepEmbedding(step_embed_dim, R)
         cdim = step_embed_dim + cond_dim
         dims = [action_dim, *down_dims]
         pairs = list(zip(dims[:-1], dims[1:]))
-        blk = lambda a, b: FiLMResBlock(a, b, cdim, kernel_size, n_groups)
+        blk = lambda a, b: FiLMResBlock(a, b, cdim, kernel_size, n_groups, R)
         self.down = nn.ModuleList()
         for i, (a, b) in enumerate(pairs):
             last = i == len(pairs) - 1
             self.down.append(nn.ModuleList([blk(a, b), blk(b, b),
-                                            nn.Identity() if last else nn.Conv1d(b, b, 3, 2, 1)]))
+                                            nn.Identity() if last else _conv(R, b, b, 3, 2, 1)]))
         d = down_dims[-1]
         self.mid = nn.ModuleList([blk(d, d), blk(d, d)])
         self.up = nn.ModuleList()
         for a, b in reversed(pairs[1:]):
-            self.up.append(nn.ModuleList([blk(2 * b, a), blk(a, a), nn.ConvTranspose1d(a, a, 4, 2, 1)]))
-        self.final = nn.Sequential(ConvBlock(down_dims[0], down_dims[0], kernel_size, n_groups),
-                                   nn.Conv1d(down_dims[0], action_dim, 1))
+            self.up.append(nn.ModuleList([blk(2 * b, a), blk(a, a), _conv(R, a, a, 4, 2, 1, transposed=True)]))
+        self.final = nn.Sequential(ConvBlock(down_dims[0], down_dims[0], kernel_size, n_groups, R),
+                                   _conv(R, down_dims[0], action_dim, 1))
+
+    # layout: a chunk (B, [R,] T, A) <-> channels first (B, R A, T)
+    def _channels(self, t: torch.Tensor) -> torch.Tensor:
+        if self.R == 1:
+            return t.transpose(1, 2)
+        B, R, T, A = t.shape
+        return t.permute(0, 1, 3, 2).reshape(B, R * A, T)
+
+    def _chunk(self, x: torch.Tensor) -> torch.Tensor:
+        if self.R == 1:
+            return x.transpose(1, 2)
+        B, RA, T = x.shape
+        return x.reshape(B, self.R, RA // self.R, T).permute(0, 1, 3, 2)
 
     def forward(self, tau: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         c = torch.cat([self.step_embed(k), cond], dim=-1)
-        x = tau.transpose(1, 2)
+        x = self._channels(tau)
         skips = []
         for r1, r2, down in self.down:
             x = r2(r1(x, c), c)
@@ -155,18 +226,19 @@ class ConditionalUnet1D(nn.Module):
         for r in self.mid:
             x = r(x, c)
         for r1, r2, up in self.up:
-            x = torch.cat([x, skips.pop()], dim=1)
+            x = _member_cat(x, skips.pop(), self.R)
             x = up(r2(r1(x, c), c))
-        return self.final(x).transpose(1, 2)
+        return self._chunk(self.final(x))
 
     def forward_jvp(self, tau, tau_d, k, cond, cond_d):
-        """``(y, dy)``: the output and its derivative along tangents ``tau_d (n, T_h, A)`` of the
-        input and ``cond_d (n, n_cond)`` of the condition (either may be None = zero). The
-        tangents may cover only the first ``n <= B`` samples; then ``dy`` is ``(n, T_h, A)``."""
+        """``(y, dy)``: the output and its derivative along tangents ``tau_d (n, [R,] T_h, A)`` of the
+        input and ``cond_d (n, [R,] n_cond)`` of the condition (either may be None = zero). The
+        tangents may cover only the first ``n <= B`` samples; then ``dy`` is ``(n, [R,] T_h, A)``."""
+        R = self.R
         e = self.step_embed(k)
         c = torch.cat([e, cond], dim=-1)
         cd = None if cond_d is None else torch.cat([torch.zeros_like(e[: cond_d.shape[0]]), cond_d], dim=-1)
-        x, xd = tau.transpose(1, 2), None if tau_d is None else tau_d.transpose(1, 2)
+        x, xd = self._channels(tau), None if tau_d is None else self._channels(tau_d)
         skips = []
         for r1, r2, down in self.down:
             x, xd = r2.forward_jvp(*r1.forward_jvp(x, xd, c, cd), c, cd)
@@ -179,10 +251,38 @@ class ConditionalUnet1D(nn.Module):
             s, sd = skips.pop()
             if xd is not None or sd is not None:
                 n = (xd if xd is not None else sd).shape[0]
-                xd = torch.cat([torch.zeros_like(x[:n]) if xd is None else xd,
-                                torch.zeros_like(s[:n]) if sd is None else sd], dim=1)
-            x = torch.cat([x, s], dim=1)
+                xd = _member_cat(torch.zeros_like(x[:n]) if xd is None else xd,
+                                 torch.zeros_like(s[:n]) if sd is None else sd, R)
+            x = _member_cat(x, s, R)
             x, xd = _linear_t(up, *r2.forward_jvp(*r1.forward_jvp(x, xd, c, cd), c, cd))
         x, xd = self.final[0].forward_jvp(x, xd)
         x, xd = _linear_t(self.final[1], x, xd)
-        return x.transpose(1, 2), None if xd is None else xd.transpose(1, 2)
+        return self._chunk(x), None if xd is None else self._chunk(xd)
+
+
+# ------------------------------------------------------- stacks of solo networks
+def member_view(stacked: torch.Tensor, solo_dim: int, R: int, r: int) -> torch.Tensor:
+    """Member ``r``'s block of a stacked tensor (a view) whose solo tensor has ``solo_dim`` dimensions."""
+    return stacked[r] if stacked.dim() == solo_dim + 1 else stacked.chunk(R, dim=0)[r]
+
+
+def stack_members(nets: list[ConditionalUnet1D]) -> ConditionalUnet1D:
+    """One stacked network (``members=len(nets)``) whose member ``r`` has the weights of ``nets[r]`` (solo
+    networks of one architecture)."""
+    R = len(nets)
+    if any(n.R != 1 or n.arch != nets[0].arch for n in nets):
+        raise ValueError("stack_members needs solo networks of one architecture")
+    stacked = ConditionalUnet1D(**nets[0].arch, members=R)
+    states = [n.state_dict() for n in nets]
+    new = {}
+    for k, v in stacked.state_dict().items():
+        parts = [s[k].to(v.dtype) for s in states]
+        new[k] = torch.stack(parts) if v.dim() == parts[0].dim() + 1 else torch.cat(parts)
+    stacked.load_state_dict(new)
+    return stacked.to(next(nets[0].parameters()).device)
+
+
+def member_state_dict(stacked: ConditionalUnet1D, r: int, solo: ConditionalUnet1D) -> dict:
+    """Member ``r``'s weights of a stacked network as a state dict of the solo network ``solo`` (for shapes)."""
+    ref = solo.state_dict()
+    return {k: member_view(v, ref[k].dim(), stacked.R, r).clone() for k, v in stacked.state_dict().items()}
