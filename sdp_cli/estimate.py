@@ -62,6 +62,19 @@ class TrainStage:
     E: int = 0
     B: int = 0
     steps: int = 0
+    #: the run's training config (architecture and Sobolev settings: what a step's time depends on)
+    train: object = None
+
+    @property
+    def key(self) -> tuple:
+        """What a step's measured time depends on besides the batch size: task, method, T_h, action and the
+        run's architecture and Sobolev settings (a smaller U-Net or ``sobolev_fraction`` is another step); not
+        K, the scheduler's length (a training step calls the network once whatever K)."""
+        t = self.train
+        arch = {k: v for k, v in t.architecture().items() if k != "diffusion_steps"} if t is not None else {}
+        cfg = () if t is None else (tuple(sorted((k, str(v)) for k, v in arch.items())),
+                                    str(t.sobolev.mode), str(t.sobolev.path), t.sobolev.n_proj, t.sobolev.fraction)
+        return (self.task, self.method, self.T_h, self.action, cfg)
 
 
 def training_stages(runs: dict) -> list[TrainStage]:
@@ -75,7 +88,7 @@ def training_stages(runs: dict) -> list[TrainStage]:
         task = get_task(cfg.task)
         for k in range(cfg.n_algo):
             st = TrainStage(run, k, cfg.task, cfg.method, int(cfg.horizon), cfg.n_traj_at(k), int(cfg.epochs),
-                            int(cfg.train.data.batch_size), cfg.train.policy.action)
+                            int(cfg.train.data.batch_size), cfg.train.policy.action, train=cfg.train)
             if get_method(st.method).chunked:
                 st.E = max(1, math.ceil(st.n_traj * (task.T - st.T_h) / st.T_h))
             else:
@@ -86,38 +99,47 @@ def training_stages(runs: dict) -> list[TrainStage]:
     return out
 
 
-def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Generator, device) -> dict:
+def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Generator, device, T_o: int = 1) -> dict:
     r = lambda *s: (torch.rand(*s, generator=gen) * 2 - 1).to(device)
     A, n_o, n_xi, ndx = dims["n_action"], dims["n_obs"], dims["n_xi"], dims["ndx"]
     if get_method(method).chunked:
-        b = {"tau0": r(B, T_h, A), "obs": r(B, 1, n_o), "obs_jac": r(B, 1, n_o, ndx), "xi": r(B, n_xi),
+        b = {"tau0": r(B, T_h, A), "obs": r(B, T_o, n_o), "obs_jac": r(B, T_o, n_o, ndx), "xi": r(B, n_xi),
              "jac": r(B, T_h, A, ndx)}
-        b["a_hist"] = b["tau0"][:, :1]
+        b["a_hist"] = b["tau0"][:, :T_o]
         return b
     return {"obs": r(B, n_o), "obs_jac": r(B, n_o, ndx), "u": r(B, A), "xi": r(B, n_xi), "jac": r(B, A, ndx)}
 
 
+def _config(method: str, T_h: int, B: int, action: str | None, train=None):
+    """The config a step is timed with: the run's (``train``) at batch size ``B``, or the method's defaults."""
+    from sdp_cli.policy.config import TrainConfig
+
+    if train is not None:
+        return train.with_options(batch_size=B)
+    return TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
+
+
 def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
-                 max_s: float = 5.0) -> float:
+                 max_s: float = 5.0, train=None) -> float:
     """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
-    clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step)."""
+    clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step);
+    ``train``: the run's config (else the method's defaults at ``T_h``)."""
     from types import SimpleNamespace
 
-    from sdp_cli.policy.config import TrainConfig
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
     from sdp_cli.train import ema_for, optimizer_for
     from sdp_cli.train_step import OneRun, step as train_step
 
     task = get_task(task_name)
-    cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
+    cfg = _config(method, T_h, B, action, train)
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     torch.manual_seed(0)
     policy = make_policy(cfg, dims).to(device)
     opt = optimizer_for(cfg, policy.parameters())
     ema = ema_for(cfg, policy.parameters())
     gen = torch.Generator().manual_seed(0)
-    batch = _synthetic_batch(method, dims, T_h, B, gen, device)
+    batch = _synthetic_batch(method, dims, T_h, B, gen, device, cfg.policy.n_obs_steps)
     g = torch.Generator(device=device).manual_seed(0)
     run = SimpleNamespace(policy=policy, cfg=cfg, opt=opt, ema=ema, gen=g, sched=None, done=False, step=0,
                           next_batch=lambda: batch)
@@ -134,15 +156,17 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
               log=lambda s: None) -> dict:
     """``{(task, method, T_h, action): (B_lo, t_lo, B_hi, t_hi)}`` measured step times."""
     combos: dict = {}
+    stage = {}
     for st in train:
-        combos.setdefault((st.task, st.method, st.T_h, st.action), set()).add(st.B)
+        combos.setdefault(st.key, set()).add(st.B)
+        stage.setdefault(st.key, st)
     n_meas = sum(min(2, len(bs)) for bs in combos.values())
     per = max(0.2, 0.8 * budget_s / max(n_meas, 1) - 0.3)
     out = {}
     for key, bs in combos.items():
         lo, hi = min(bs), max(bs)
-        t_lo = step_seconds(*key[:3], lo, key[3], device, per)
-        t_hi = t_lo if hi == lo else step_seconds(*key[:3], hi, key[3], device, per)
+        t_lo = step_seconds(*key[:3], lo, key[3], device, per, stage[key].train)
+        t_hi = t_lo if hi == lo else step_seconds(*key[:3], hi, key[3], device, per, stage[key].train)
         out[key] = (lo, t_lo, hi, t_hi)
         log(f"calibrated {key[1]} on {key[0]} (T_h {key[2]}): {t_lo * 1e3:.1f} ms at B={lo}"
             + (f", {t_hi * 1e3:.1f} ms at B={hi}" if hi != lo else ""))
@@ -162,20 +186,20 @@ def _median_seconds(step, max_s: float) -> float:
 
 
 def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
-                         device="cpu", max_s: float = 5.0) -> float:
+                         device="cpu", max_s: float = 5.0, train=None) -> float:
     """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_step.Stack`, the
     trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
-    synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up)."""
+    synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up); ``train``: the
+    runs' config (else the method's defaults at ``T_h``)."""
     from types import SimpleNamespace
 
-    from sdp_cli.policy.config import TrainConfig
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
     from sdp_cli.train import ema_for, optimizer_for
     from sdp_cli.train_step import Stack, step as train_step
 
     task = get_task(task_name)
-    cfg = TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
+    cfg = _config(method, T_h, B, action, train)
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     runs = []
     for r in range(R):
@@ -183,7 +207,7 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
         pol = make_policy(cfg, dims).to(device)
         opt = optimizer_for(cfg, pol.parameters())
         gen = torch.Generator().manual_seed(r)
-        batch = _synthetic_batch(method, dims, T_h, B, gen, device)
+        batch = _synthetic_batch(method, dims, T_h, B, gen, device, cfg.policy.n_obs_steps)
         runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, step=0, device=torch.device(device),
                                     sched=torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0),
                                     ema=ema_for(cfg, pol.parameters()),
@@ -200,13 +224,13 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
 def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
     """Measured seconds of one training step of a job of the runs ``sts`` (one :class:`TrainStage` each): a
     stack's (:func:`stacked_step_seconds`, batches padded to the largest), or one run's (:func:`step_seconds`);
-    measured once per (task, method, T_h, action, R, B) in ``cache``."""
+    measured once per (:attr:`TrainStage.key`, R, B) in ``cache``."""
     s0 = sts[0]
-    key = (s0.task, s0.method, s0.T_h, s0.action, len(sts), max(s.B for s in sts))
+    R, B = len(sts), max(s.B for s in sts)
+    key = (s0.key, R, B)
     if key not in cache:
-        R, B = key[4], key[5]
-        cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s) if R == 1 else
-                      stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s))
+        cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s, s0.train) if R == 1 else
+                      stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s, s0.train))
         log(f"calibrated a stack of {R} {s0.method} runs on {s0.task} (T_h {s0.T_h}, B={B}): "
             f"{cache[key] * 1e3:.1f} ms a step")
     return cache[key]
@@ -256,7 +280,7 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         r["steps"] += st.steps
         r["samples"] += st.epochs * st.E
         for d in devices:
-            r[f"train_{d}_s"] += st.steps * _interp(cals[d][(st.task, st.method, st.T_h, st.action)], st.B)
+            r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B)
     from sdp_cli.runner import pack
     from sdp_cli.train_stack import DEFAULT_STACK
 
@@ -275,7 +299,7 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         # collection: the naive guess at iteration 0, then policy guess and naive guess (ArgminCost)
         r["to_s"] += sum(cfg.n_traj_at(k) * ms * (1 if k == 0 else 2) for k in range(cfg.n_algo))
         ro = cfg.rollout
-        fwd = _interp(cals["cpu"][(st.task, st.method, st.T_h, st.action)], min(ro.n_test, st.B)) / 3
+        fwd = _interp(cals["cpu"][st.key], min(ro.n_test, st.B)) / 3
         for k in range(cfg.n_algo):
             t_as = list(ro.eval_t_a or (ro.t_a,))
             if k == cfg.n_algo - 1:
@@ -284,8 +308,9 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
                 if ro.eval_refine:
                     r["to_s"] += 2 * ro.n_test * ms + (2 * ro.n_test * ss if ro.single_shooting else 0.0)
                 t_a = t_a or max(1, cfg.train.policy.max_t_a)
-                k = ro.k_rollout or cfg.train.policy.diffusion_steps   # network calls per replanning
-                calls = (math.ceil(task.T / t_a) * k) if get_method(st.method).chunked else task.T
+                family = cfg.train.policy_class   # network calls per plan: the sampler's (K or k_rollout) or 1
+                k = ro.k_rollout or family.sampler_steps(cfg.train) or 1
+                calls = (math.ceil(task.T / t_a) * k) if family.chunked else task.T
                 r["rollout_s"] += calls * fwd
     df = pd.DataFrame(list(rows.values()))
     if "stack" in df:

@@ -111,10 +111,10 @@ class LoopConfig:
             if bad:
                 raise SdpError(f"{name} {bad} outside [1, {what}] = [1, {hi}] for method {tcfg.method!r}")
         if r.k_rollout is not None:
-            if not tcfg.chunked:
+            K = tcfg.policy_class.sampler_steps(tcfg) if tcfg.chunked else None
+            if K is None:
                 raise SdpError(f"k_rollout (denoising steps at rollout) applies to chunked diffusion policies; "
                                f"{tcfg.method!r} has no sampler")
-            K = tcfg.policy.diffusion_steps
             if not 1 <= r.k_rollout <= K:
                 raise SdpError(f"k_rollout must be in [1, K] = [1, {K}], got {r.k_rollout}")
 

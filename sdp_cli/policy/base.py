@@ -99,6 +99,18 @@ class Policy(nn.Module):
         """Network sizes ``{n_action, n_obs, n_xi, ndx}``."""
         raise NotImplementedError
 
+    # ------------------------------------------------------------------ configuration
+    @classmethod
+    def check_config(cls, config: TrainConfig) -> None:
+        """The family's own rules on a training config (one ``SdpError`` naming the option), after the rules
+        every option obeys (:func:`sdp_cli.policy.config.check`); e.g. the U-Net's divisibility rules."""
+
+    @classmethod
+    def sampler_steps(cls, config: TrainConfig) -> int | None:
+        """Network calls of the family's sampler per plan at most (``k_rollout``'s bound and default: the
+        diffusion steps K), or None: no sampler, one network call per plan."""
+        return None
+
     # ------------------------------------------------------------------ training
     def compute_loss(self, batch: dict, generator: torch.Generator | None = None):
         """``(loss, {"dp": regression term, "sobolev": scaled Sobolev term})`` of a normalized batch."""

@@ -48,8 +48,8 @@ class PolicyConfig:
 
     method: str = opt("sdp", "Method (a registered policy family).")
     action: str | None = opt(None, "Action variable u, x, q or v (default: the task's).")
-    horizon: int = opt(32, "Chunk length T_h (diffusion methods).", ge=1)
-    n_obs_steps: int = opt(1, "Observed steps T_o (diffusion methods).", ge=1)
+    horizon: int = opt(32, "Chunk length T_h (chunked methods).", ge=1)
+    n_obs_steps: int = opt(1, "Observed steps T_o (chunked methods).", ge=1)
     diffusion_steps: int = opt(5, "DDPM steps K (training; rollouts may use fewer).", ge=1)
     down_dims: list[int] = opt(help="U-Net channels per level, comma-separated.", factory=lambda: [24, 24, 32, 32], ge=1)
     kernel_size: int = opt(5, "U-Net convolution kernel size (odd: the chunk keeps its length).", ge=1, odd=True)
@@ -290,14 +290,7 @@ def check(cfg: TrainConfig) -> None:
     for name in ("down_dims", "mlp_hidden"):
         if not getattr(p, name):
             raise SdpError(f"{name} must be positive integers, got {getattr(p, name)}")
-    if cfg.chunked:
-        levels = len(p.down_dims)
-        if p.horizon % (2 ** (levels - 1)):
-            raise SdpError(f"horizon T_h = {p.horizon} must be divisible by 2^(len(down_dims) - 1) = "
-                           f"{2 ** (levels - 1)} for the U-Net")
-        bad = [d for d in p.down_dims if d % p.n_groups]
-        if bad:
-            raise SdpError(f"down_dims {bad} not divisible by n_groups = {p.n_groups}")
+    cfg.policy_class.check_config(cfg)   # the family's own rules (the U-Net's, for the diffusion methods)
 
 
 def resolved_alpha(cfg: TrainConfig, task) -> TrainConfig:

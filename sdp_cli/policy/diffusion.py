@@ -91,6 +91,25 @@ class DiffusionUnetPolicy(Policy):
                                       p.kernel_size, p.n_groups, p.step_embed_dim)
         self.noise_scheduler = make_scheduler(config)
 
+    # ------------------------------------------------------------------ configuration
+    @classmethod
+    def check_config(cls, config) -> None:
+        """The U-Net's rules: T_h divisible by 2^(levels - 1) (the down path halves it per level), channels
+        divisible by the GroupNorm groups."""
+        p = config.policy
+        levels = len(p.down_dims)
+        if p.horizon % (2 ** (levels - 1)):
+            raise SdpError(f"horizon T_h = {p.horizon} must be divisible by 2^(len(down_dims) - 1) = "
+                           f"{2 ** (levels - 1)} for the U-Net")
+        bad = [d for d in p.down_dims if d % p.n_groups]
+        if bad:
+            raise SdpError(f"down_dims {bad} not divisible by n_groups = {p.n_groups}")
+
+    @classmethod
+    def sampler_steps(cls, config) -> int:
+        """The reverse chain has at most K = ``diffusion_steps`` network calls (``k_rollout`` <= K)."""
+        return config.policy.diffusion_steps
+
     # ------------------------------------------------------------------ data
     @classmethod
     def make_dataset(cls, config, task, arrays, with_jacobians):
