@@ -15,7 +15,12 @@ Algorithm (our implementation, read from the papers; no crocoddyl or aligator co
 - **Hessians**: Gauss-Newton in the dynamics (exact cost Hessians, no second-order dynamics term), as FDDP.
   The feedback gains stored with a solution are recomputed at the converged point with the exact Hessian of
   the Lagrangian (co-states ``lambda_{t+1} = V_x(t+1)``) by :func:`sdp_cli.trajopt.gains.riccati_gains`, the
-  same code that gives fatrop's solutions their gains, so a DDP dataset trains SDP on true sensitivities.
+  same code that gives fatrop's solutions their gains, so a DDP dataset trains SDP on true sensitivities. They
+  are taken after a **polish**: a converged instance (``gains=True``) iterates on to the stopping measure
+  ``POLISH_TOL`` (at most ``POLISH_MAX_ITER`` more iterations) and returns its last converged point, since at
+  ``STOP_TOL`` its gains are ~1e-4 off the sensitivities (median over t; 1e-6 after the polish,
+  ``tests/test_ddp.py`` at the pipeline's settings). ``iterations`` and ``solve_time`` are those to ``tol``; the
+  polish is counted in ``gain_time`` and ``polish_iterations``, as fatrop's active-set polish is.
 - **Regularization** ``Quu + mu I``: ``mu`` starts at ``REG_INIT``; x10 when the backward pass meets a
   ``Quu + mu I`` that is not positive definite or the accepted step is <= ``STEP_INC`` (or none is accepted);
   /10 (not below ``REG_MIN``) when the step is > ``STEP_DEC``; above ``REG_MAX`` the solve stops, failed.
@@ -66,6 +71,10 @@ from sdp_cli.trajopt.solver import DEFAULT_MAX_ITER, SolveResult
 STOP_TOL = 1e-9
 GAP_TOL = 1e-9
 REG_INIT, REG_MIN, REG_MAX, REG_FACTOR = 1e-9, 1e-9, 1e9, 10.0
+#: where the stored gains are taken (``gains=True``): a converged instance iterates on to this stopping measure
+#: (at most POLISH_MAX_ITER more iterations), since at STOP_TOL its gains are off the sensitivities by ~1e-4
+#: (median over t; tests/test_ddp.py checks them against finite differences at the pipeline's settings)
+POLISH_TOL, POLISH_MAX_ITER = 1e-13, 30
 STEP_INC, STEP_DEC = 0.01, 0.5
 ACCEPT, ACCEPT_NEG = 0.1, 2.0
 ALPHAS = tuple(2.0 ** -np.arange(11))
@@ -283,7 +292,14 @@ class DDPSolver(GainsMixin):
         Vx_keep, free_keep = np.zeros((N, T + 1, ndx)), np.ones((N, T, task.nu), dtype=bool)
         lin_keep = {"A": np.zeros((N, T, ndx, ndx)), "B": np.zeros((N, T, ndx, task.nu)),
                     "lTxx": np.zeros((N, ndx, ndx))}
-        for _ in range(self.max_iter + 1):
+        # polishing (gains only): a converged instance iterates on to POLISH_TOL, so that its stored gains are the
+        # sensitivities of the solution (at the solve's tol they are off by ~1e-4); its last point that was
+        # converged (stationary, feasible) is what it returns, its iterations those to ``tol``
+        polish = gains and POLISH_TOL < self.tol
+        polishing = np.zeros(N, dtype=bool)
+        conv_iters = np.zeros(N, dtype=int)
+        keep = {"X": X.copy(), "U": U.copy(), "cost": np.full(N, np.nan)}
+        for _ in range(self.max_iter + POLISH_MAX_ITER + 1):
             idx = np.flatnonzero(active)
             if not len(idx):
                 break
@@ -294,13 +310,29 @@ class DDPSolver(GainsMixin):
             cost[idx] = d["cost"]
             bad = ~np.isfinite(d["J"])
             k, K, Vx, free, stop, ok = self._backward(d, np.where(np.isfinite(gaps), gaps, 0.0), Ua, reg[idx])
-            Vx_keep[idx], free_keep[idx] = Vx, free
             feasible = np.abs(amb).max(axis=(1, 2)) <= GAP_TOL
             stationary = ok & feasible & ~bad
             viol = al.violation(d["h"]) if task.n_h else np.zeros(len(idx))
-            done = stationary & (stop <= self.tol) & (viol <= al.H_TOL)
-            converged[idx[done]] = True
-            status[idx[done]] = "converged"
+            at_tol = stationary & (stop <= self.tol) & (viol <= al.H_TOL)    # converged (again, when polishing)
+            first = at_tol & ~converged[idx]                               # converged at this iteration
+            converged[idx[first]] = True
+            status[idx[first]] = "converged"
+            conv_iters[idx[first]] = iters[idx[first]]
+            # the point the gains are taken at: the last converged one
+            if at_tol.any():
+                c = idx[at_tol]
+                Vx_keep[c], free_keep[c] = Vx[at_tol], free[at_tol]
+                keep["X"][c], keep["U"][c], keep["cost"][c] = Xa[at_tol], Ua[at_tol], d["cost"][at_tol]
+                for key in ("A", "B", "lTxx"):
+                    lin_keep[key][c] = d[key][at_tol]
+            if polish:   # converged at tol: polish to POLISH_TOL (within its budget)
+                polishing[idx[first]] = True
+                pol = polishing[idx]
+                done = (at_tol & (stop <= POLISH_TOL)) | (pol & (iters[idx] - conv_iters[idx] >= POLISH_MAX_ITER))
+            else:
+                pol = polishing[idx]
+                done = at_tol
+            tol = np.where(pol, POLISH_TOL, self.tol)
             # an augmented-Lagrangian subproblem solved, the constraints not yet met: update lam, rho, inner tol
             solved = stationary & ~done & (stop <= inner_tol[idx]) if task.n_h else np.zeros(len(idx), dtype=bool)
             # an update that changes nothing (no constraint violated, the multipliers already mu) only tightens the
@@ -319,13 +351,10 @@ class DDPSolver(GainsMixin):
             if solved.any():          # every solved subproblem, updated or not: the next one's tolerance
                 c = idx[solved]
                 viol_prev[c] = viol[solved]
-                inner_tol[c] = np.maximum(self.tol, inner_tol[c] * al.INNER_FACTOR)
-            out_of_iter = iters[idx] >= self.max_iter
+                inner_tol[c] = np.maximum(tol[solved], inner_tol[c] * al.INNER_FACTOR)
+            out_of_iter = (iters[idx] >= self.max_iter) & ~polishing[idx]
             status[idx[out_of_iter & ~done]] = f"not converged: {self.max_iter} iterations (the cap)"
-            status[idx[bad & ~done]] = "not converged: non-finite cost"
-            if done.any():          # what the gains need at a converged point, from this iteration's derivatives
-                for key in ("A", "B", "lTxx"):
-                    lin_keep[key][idx[done]] = d[key][done]
+            status[idx[bad & ~done & ~polishing[idx]]] = "not converged: non-finite cost"
             stopped = done | out_of_iter | bad
             active[idx[stopped]] = False
             go = ~stopped
@@ -340,12 +369,18 @@ class DDPSolver(GainsMixin):
                 reg[dec] = np.maximum(REG_MIN, reg[dec] / REG_FACTOR)
                 reg[inc] *= REG_FACTOR
             over = np.flatnonzero(active & (reg > REG_MAX))
-            for i in over:          # (rare: the instances that just failed)
-                status[i] = f"not converged: regularization above {REG_MAX:g} after {iters[i]} iterations"
-                cost[i] = task.cost(X[i], U[i], xi[i])          # a last tiny step may have moved the iterate
+            for i in over:          # (rare: the instances that just failed, or a polish that cannot go on)
+                if not polishing[i]:
+                    status[i] = f"not converged: regularization above {REG_MAX:g} after {iters[i]} iterations"
+                    cost[i] = task.cost(X[i], U[i], xi[i])      # a last tiny step may have moved the iterate
             active[over] = False
+        # a polished instance returns its last converged point (the derivatives its gains use were taken there)
+        pol_all = np.flatnonzero(polishing)
+        X[pol_all], U[pol_all], cost[pol_all] = keep["X"][pol_all], keep["U"][pol_all], keep["cost"][pol_all]
+        polish_iters = np.where(polishing, iters - conv_iters, 0)
+        iters = np.where(converged, conv_iters, iters)
         wall = time.perf_counter() - t_start
-        per_iter = wall / max(1, int(iters.sum()))
+        per_iter = wall / max(1, int(iters.sum() + polish_iters.sum()))
         f = self._step_one(X[:, :-1].reshape(N * T, task.nx), U.reshape(N * T, task.nu)).reshape(N, T, task.nx)
         h = self._h(X[:, 1:], xi) if task.n_h else np.zeros((N, T, 0))
         results = []
@@ -360,11 +395,13 @@ class DDPSolver(GainsMixin):
                               active_h=np.zeros((T, task.n_h), dtype=bool), solver="ddp", x0=x0[i].copy(),
                               xi=xi[i].copy())
             res.batch_wall_time = wall
+            res.polish_iterations = int(polish_iters[i])
             if gains and converged[i]:
                 if self.general:
                     self._add_general_gains(res, al.multipliers(h[i:i + 1], lam[i:i + 1], rho[i:i + 1])[0])
                 else:
                     self._add_gains(res, Vx_keep[i], {key: v[i] for key, v in lin_keep.items()})
+                res.gain_time += polish_iters[i] * per_iter   # the polish is for the gains: their time, not the solve's
             results.append(res)
         return results
 
