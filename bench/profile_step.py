@@ -33,7 +33,7 @@ def stacked(method: str, B: int, R: int) -> None:
     import sdp_cli.estimate as est
 
     steps = []
-    real, est._median_seconds = est._median_seconds, lambda step, max_s: steps.append(step) or 1.0
+    real, est._median_seconds = est._median_seconds, lambda step, *_: steps.append(step) or 1.0
     try:
         est.stacked_step_seconds("ur5-fixed", method, 32, B, R)   # builds the stack, hands back its step
     finally:

@@ -5,7 +5,7 @@ Per run (one task x method x seed x n_traj of the experiment, all its iterations
 - training: the steps of every iteration, ``epochs * ceil(E / B)`` with ``E = n_traj (T - T_h) / T_h``
   chunks (``n_traj T`` pairs for the MLPs) and ``B = min(batch_size, E)`` samples per step, as
   ``sdp train`` runs them (:mod:`sdp_cli.data.sampling`); the time per step is **measured** on this
-  machine (one torch thread, the real loss, backward, clipping, AdamW and EMA on a batch of the
+  machine in CPU time (one torch thread, the real loss, backward, clipping, AdamW and EMA on a batch of the
   task's shapes), at the smallest and largest batch the experiment uses, linear in between;
 - trajectory optimization: collection (``n_traj`` solves at iteration 0, ``2 n_traj`` after: from
   the policy's guess and from the naive guess, ArgminCost), the test-set refinements
@@ -149,7 +149,7 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
         for loss, _, _ in train_step(group):
             loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
-    return _median_seconds(step, max_s)
+    return _median_seconds(step, max_s, device)
 
 
 def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
@@ -173,15 +173,18 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
     return out
 
 
-def _median_seconds(step, max_s: float) -> float:
-    """Median seconds of ``step()`` over the calls that fit in ``max_s`` (at least 2, at most 20), after one
-    warm-up call."""
+def _median_seconds(step, max_s: float, device="cpu") -> float:
+    """Median seconds of ``step()`` over the calls that fit in ``max_s`` of wall time (at least 2, at most 20),
+    after one warm-up call. On the CPU the seconds are the calling thread's CPU time (torch runs on it with one
+    thread): what a step costs a run that has a core to itself, whatever else loads the machine while the
+    estimate measures (wall time read 5-11x high on a loaded machine); on a GPU, wall time."""
+    clock = time.thread_time if torch.device(device).type == "cpu" else time.perf_counter
     step()
     times, t_start = [], time.perf_counter()
     while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
-        t0 = time.perf_counter()
+        t0 = clock()
         step()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return float(np.median(times))
 
 
@@ -218,7 +221,7 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
         for loss, _, _ in train_step(stack):
             loss.detach().item()
 
-    return _median_seconds(step, max_s)
+    return _median_seconds(step, max_s, device)
 
 
 def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
