@@ -285,7 +285,7 @@ def pipeline_cmd(
     workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
     executor: Annotated[Optional[str], typer.Option(help="--run: local (process pool; default $SDP_EXECUTOR, else local) or dask.")] = None,
     scheduler: Annotated[Optional[str], typer.Option(help="--run: address of a running Dask scheduler (default $SDP_SCHEDULER).")] = None,
-    stack: Annotated[Optional[int], typer.Option(help="--run, --estimate: runs trained together as one stacked network (compatible one-iteration runs, e.g. fig1's; default 8, fixed so that a seed gives the same bytes on any machine; 1: every run alone).")] = None,
+    stack: Annotated[Optional[int], typer.Option(help="--run, --estimate: runs trained together as one stacked network (compatible runs: fig1's, or loops of as many iterations and dataset sizes, trained in lockstep; default 8, fixed so that a seed gives the same bytes on any machine; 1: every run alone).")] = None,
 ) -> None:
     """Select the experiment that `dvc repro` runs (pipelines/<name>.yaml, written into params.yaml), or run it (--run)."""
     from sdp_cli.pipeline import select_experiment

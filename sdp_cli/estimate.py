@@ -120,7 +120,7 @@ def _config(method: str, T_h: int, B: int, action: str | None, train=None):
 
 
 def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
-                 max_s: float = 5.0, train=None) -> float:
+                 max_s: float = 5.0, train=None, first: list | None = None) -> float:
     """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
     clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step);
     ``train``: the run's config (else the method's defaults at ``T_h``)."""
@@ -136,6 +136,8 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     torch.manual_seed(0)
     policy = make_policy(cfg, dims).to(device)
+    if cfg.compile:      # as the trainer does (its first step compiles: the warm-up, ``first``)
+        policy.compile_network()
     opt = optimizer_for(cfg, policy.parameters())
     ema = ema_for(cfg, policy.parameters())
     gen = torch.Generator().manual_seed(0)
@@ -149,12 +151,13 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
         for loss, _, _ in train_step(group):
             loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
 
-    return _median_seconds(step, max_s, device)
+    return _median_seconds(step, max_s, device, first)
 
 
 def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
               log=lambda s: None) -> dict:
-    """``{(task, method, T_h, action): (B_lo, t_lo, B_hi, t_hi)}`` measured step times."""
+    """``{TrainStage.key: (B_lo, t_lo, B_hi, t_hi)}`` measured step times; a compiled config's first step (its
+    compile) into :data:`COMPILE_SECONDS`."""
     combos: dict = {}
     stage = {}
     for st in train:
@@ -165,7 +168,10 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
     out = {}
     for key, bs in combos.items():
         lo, hi = min(bs), max(bs)
-        t_lo = step_seconds(*key[:3], lo, key[3], device, per, stage[key].train)
+        first = [] if stage[key].train is not None and stage[key].train.compile else None
+        t_lo = step_seconds(*key[:3], lo, key[3], device, per, stage[key].train, first)
+        if first:
+            COMPILE_SECONDS[key] = first[0]
         t_hi = t_lo if hi == lo else step_seconds(*key[:3], hi, key[3], device, per, stage[key].train)
         out[key] = (lo, t_lo, hi, t_hi)
         log(f"calibrated {key[1]} on {key[0]} (T_h {key[2]}): {t_lo * 1e3:.1f} ms at B={lo}"
@@ -173,13 +179,21 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
     return out
 
 
-def _median_seconds(step, max_s: float, device="cpu") -> float:
+#: ``{TrainStage.key: seconds}``: the first step of a compiled config (``TrainConfig.compile``), its compile as
+#: this machine's cache has it (cold: minutes; warm: seconds), charged once per training stage
+COMPILE_SECONDS: dict = {}
+
+
+def _median_seconds(step, max_s: float, device="cpu", first: list | None = None) -> float:
     """Median seconds of ``step()`` over the calls that fit in ``max_s`` of wall time (at least 2, at most 20),
     after one warm-up call. On the CPU the seconds are the calling thread's CPU time (torch runs on it with one
     thread): what a step costs a run that has a core to itself, whatever else loads the machine while the
     estimate measures (wall time read 5-11x high on a loaded machine); on a GPU, wall time."""
     clock = time.thread_time if torch.device(device).type == "cpu" else time.perf_counter
+    t0 = time.process_time()    # (a compile runs in worker threads too)
     step()
+    if first is not None:
+        first.append(time.process_time() - t0)
     times, t_start = [], time.perf_counter()
     while len(times) < 2 or (time.perf_counter() - t_start < max_s and len(times) < 20):
         t0 = clock()
@@ -189,7 +203,7 @@ def _median_seconds(step, max_s: float, device="cpu") -> float:
 
 
 def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
-                         device="cpu", max_s: float = 5.0, train=None) -> float:
+                         device="cpu", max_s: float = 5.0, train=None, first: list | None = None) -> float:
     """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_step.Stack`, the
     trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
     synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up); ``train``: the
@@ -221,7 +235,7 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
         for loss, _, _ in train_step(stack):
             loss.detach().item()
 
-    return _median_seconds(step, max_s, device)
+    return _median_seconds(step, max_s, device, first)
 
 
 def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
@@ -232,8 +246,11 @@ def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log
     R, B = len(sts), max(s.B for s in sts)
     key = (s0.key, R, B)
     if key not in cache:
-        cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s, s0.train) if R == 1 else
-                      stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s, s0.train))
+        first = [] if s0.train is not None and s0.train.compile else None
+        cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s, s0.train, first) if R == 1
+                      else stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s, s0.train,
+                                                first))
+        cache[("compile", *key)] = first[0] if first else 0.0
         log(f"calibrated a stack of {R} {s0.method} runs on {s0.task} (T_h {s0.T_h}, B={B}): "
             f"{cache[key] * 1e3:.1f} ms a step")
     return cache[key]
@@ -283,18 +300,21 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         r["steps"] += st.steps
         r["samples"] += st.epochs * st.E
         for d in devices:
-            r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B)
+            r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B) + COMPILE_SECONDS.get(st.key, 0.0)
     from sdp_cli.runner import pack
     from sdp_cli.train_stack import DEFAULT_STACK
 
     stacked: dict = {}
     for job in (j for j in pack(runs, DEFAULT_STACK if stack is None else stack) if len(j) > 1):
-        sts = [next(s for s in train if s.run == run) for run in job]
-        seconds = job_step_seconds(sts, stacked, log=log)
-        longest = max(s.steps for s in sts)
-        for run in job:   # the stack runs as long as its longest member; each member bears an equal share
+        total = 0.0
+        for k in range(runs[job[0]].n_algo):   # each iteration: one stacked training of the members' data
+            sts = [next(s for s in train if s.run == run and s.iteration == k) for run in job]
+            seconds = job_step_seconds(sts, stacked, log=log)
+            longest = max(s.steps for s in sts)   # the stack runs as long as its longest member
+            total += longest * seconds + stacked[("compile", sts[0].key, len(sts), max(s.B for s in sts))]
+        for run in job:   # each member bears an equal share
             rows[run]["stack"] = len(job)
-            rows[run]["train_cpu_s"] = longest * seconds / len(job)   # (GPU columns: solo steps, not stacked)
+            rows[run]["train_cpu_s"] = total / len(job)   # (GPU columns: solo steps)
     for run, cfg in runs.items():
         r, task = rows[run], get_task(cfg.task)
         ms, ss = to_reference(cfg.task, cfg.to)

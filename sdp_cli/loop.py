@@ -327,6 +327,19 @@ def collect_iteration(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | No
     return data
 
 
+def iteration_data(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | None,
+                   log: Callable[[str], None] = print, progress: bool = False) -> Path:
+    """What iteration ``k`` trains on: its dataset (:func:`collect_iteration`), or, without ``reset_buffer``,
+    the union of every dataset so far (``it<k>/buffer.npz``, Algorithm 1's buffer)."""
+    data = collect_iteration(cfg, out, k, prev_policy, log, progress)
+    if cfg.reset_buffer or k == 0:
+        return data
+    buffer = out / f"it{k}" / "buffer.npz"
+    if not buffer.exists():
+        merge_datasets([out / f"it{j}" / "data.npz" for j in range(k + 1)], buffer)
+    return buffer
+
+
 def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None] = print,
              progress: bool = False) -> pd.DataFrame:
     """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
@@ -336,16 +349,10 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     from sdp_cli.train import train
 
     out = begin_loop(cfg, out)
-    tables, prev_policy, datasets = [], None, []
+    tables, prev_policy = [], None
     for k in range(cfg.n_algo):
         d = out / f"it{k}"
-        data = collect_iteration(cfg, out, k, prev_policy, log, progress)
-        datasets.append(data)
-        train_data = data
-        if not cfg.reset_buffer and k > 0:
-            train_data = d / "buffer.npz"
-            if not train_data.exists():
-                merge_datasets(datasets, train_data)
+        train_data = iteration_data(cfg, out, k, prev_policy, log, progress)
         policy_dir = d / "policy"
         if not train_done(policy_dir):
             log(f"[it{k}] train {cfg.method} for {cfg.epochs} epochs" + (" (init from previous)" if prev_policy else ""))

@@ -68,31 +68,60 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
 
 
 def run_stack_job(configs: list[dict], outs: list[str], device: str = "auto") -> dict[str, list[dict]]:
-    """Compatible one-iteration runs (:func:`pack`), in a worker process: each run's collection, then their
-    training as one stack (:func:`sdp_cli.train_stack.train_stack`), then each run's evaluation (``sdp loop``,
-    which finds the data and the finished policy); ``{run: summary rows}``."""
+    """Compatible runs (:func:`pack`) in lockstep, in a worker process: at each iteration of Algorithm 1, each run's
+    collection (warm-started by its own previous policy) and buffer, then their training as one stack
+    (:func:`sdp_cli.train_stack.train_stack`, each warm-started from its own previous policy); then each run's
+    evaluations (``sdp loop``, which finds the data and the finished policies of every iteration);
+    ``{run: summary rows}``. Every run keeps its own datasets, seeds, checkpoints and numbers, and a killed job
+    resumes where it stopped (the datasets and checkpoints that exist are kept)."""
     import torch
 
-    from sdp_cli.loop import LoopConfig, begin_loop, collect_iteration, run_loop, train_done
+    from sdp_cli.executor import error_status
+    from sdp_cli.loop import LoopConfig, begin_loop, iteration_data, run_loop, train_done
     from sdp_cli.train import resolve_device
     from sdp_cli.train_stack import train_stack
 
     torch.set_num_threads(1)
     cfgs = [LoopConfig.from_dict(c, device=str(resolve_device(device))) for c in configs]
-    names = [Path(o).name for o in outs]
+    outs = [begin_loop(cfg, out) for cfg, out in zip(cfgs, outs)]
+    names = [o.name for o in outs]
 
     def logger(name):
         return lambda line: print(f"{name}: {line.strip()}", file=sys.stderr, flush=True)
 
+    failed: dict[str, str] = {}   # {run: why}: a member that fails leaves the stack, the others go on
+    live = lambda: [i for i, n in enumerate(names) if n not in failed]   # noqa: E731
     try:
-        for cfg, out, name in zip(cfgs, outs, names):
-            collect_iteration(cfg, begin_loop(cfg, out), 0, None, logger(name))
-        todo = [i for i, o in enumerate(outs) if not train_done(Path(o) / "it0" / "policy")]
-        if todo:
-            logger(" + ".join(names[i] for i in todo))(f"[it0] train {len(todo)} runs as one stack")
-            train_stack([Path(outs[i]) / "it0" / "data.npz" for i in todo], [Path(outs[i]) / "it0" / "policy" for i in todo],
-                        [cfgs[i].train for i in todo], device=cfgs[0].device, log=lambda s: None)
-        return {name: run_loop(cfg, out, log=logger(name)).to_dict("records") for cfg, out, name in zip(cfgs, outs, names)}
+        for k in range(cfgs[0].n_algo):
+            prev = [o / f"it{k - 1}" / "policy" if k else None for o in outs]
+            datas = {}
+            for i in live():
+                try:
+                    datas[i] = iteration_data(cfgs[i], outs[i], k, prev[i], logger(names[i]))
+                except Exception as e:   # noqa: BLE001 - one member's failed collection is that member's
+                    failed[names[i]] = error_status(e)
+            todo = [i for i in live() if not train_done(outs[i] / f"it{k}" / "policy")]
+            if todo:
+                logger(" + ".join(names[i] for i in todo))(f"[it{k}] train {len(todo)} runs as one stack"
+                                                           + (" (init from previous)" if k else ""))
+                diverged: dict = {}
+                train_stack([datas[i] for i in todo], [outs[i] / f"it{k}" / "policy" for i in todo],
+                            [cfgs[i].train for i in todo], device=cfgs[0].device, log=lambda s: None,
+                            inits=[prev[i] / "checkpoint.pt" if k else None for i in todo], failed=diverged)
+                for i in todo:
+                    if outs[i] / f"it{k}" / "policy" in diverged:
+                        failed[names[i]] = "error: " + diverged[outs[i] / f"it{k}" / "policy"]
+                        logger(names[i])(f"[it{k}] FAILED, left the stack: {failed[names[i]]}")
+        out = {}
+        for i in range(len(names)):
+            if names[i] in failed:
+                out[names[i]] = failed[names[i]]
+                continue
+            try:
+                out[names[i]] = run_loop(cfgs[i], outs[i], log=logger(names[i])).to_dict("records")
+            except Exception as e:   # noqa: BLE001
+                out[names[i]] = error_status(e)
+        return out
     except KeyboardInterrupt:
         _leave_if_pool_worker()
         raise
@@ -107,11 +136,11 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 
 
 def pack(runs: dict, stack: int) -> list[list[str]]:
-    """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): one-iteration runs of
-    a stackable, compatible training config (:func:`sdp_cli.train_stack.stack_key`) and of one dataset size share
-    stacks of up to ``stack`` runs (a group larger than ``stack`` is split into near-equal stacks, in the
-    experiment's order); every other run (loops of several iterations: collect -> train -> evaluate each
-    iteration, so their stacks would wait on each other's collections) is a job of its own. One size per stack:
+    """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): runs of a stackable,
+    compatible training config (:func:`sdp_cli.train_stack.stack_key`), of one number of iterations, buffer rule
+    and dataset sizes at every iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
+    split into near-equal stacks, in the experiment's order), trained in lockstep (:func:`run_stack_job`: each
+    iteration's collections, then one stacked training); every other run is a job of its own. One size per stack:
     a stack pads its members' batches to its largest, so filling stacks across sizes (until 2026-11-27) spent
     1.25-1.35x the time on padding rows (``bench/stack_packing.py``). Stacks first, the larger datasets first
     within a training config (the longest jobs start first), then the runs alone; the same experiment gives the
@@ -121,13 +150,15 @@ def pack(runs: dict, stack: int) -> list[list[str]]:
     groups: dict = {}
     alone: list[list[str]] = []
     for name, cfg in runs.items():
-        if stack > 1 and cfg.n_algo == 1 and stackable(cfg.train):
-            groups.setdefault(stack_key(cfg.task, cfg.train), {}).setdefault(cfg.n_traj_at(0), []).append(name)
+        if stack > 1 and stackable(cfg.train):
+            sizes = tuple(cfg.n_traj_at(k) for k in range(cfg.n_algo))
+            key = (stack_key(cfg.task, cfg.train), cfg.n_algo, cfg.reset_buffer)
+            groups.setdefault(key, {}).setdefault(sizes, []).append(name)
         else:
             alone.append([name])
     jobs = []
     for sizes in groups.values():
-        for n_traj in sorted(sizes, reverse=True):
+        for n_traj in sorted(sizes, key=lambda s: s[::-1], reverse=True):
             jobs += split_even(sizes[n_traj], stack)
     return jobs + alone
 
@@ -168,7 +199,7 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     (:data:`sdp_cli.RESULTS_VERSION`) is moved aside (:func:`supersede`, never deleted) and the run
     starts over; otherwise other settings are refused before anything runs and another results version
     is resumed. ``job``: the per-run function (tests substitute one that kills its worker once). ``stack``: runs
-    per stack of compatible one-iteration runs (:func:`pack`; default :data:`sdp_cli.train_stack.DEFAULT_STACK`,
+    per stack of compatible runs (:func:`pack`; default :data:`sdp_cli.train_stack.DEFAULT_STACK`,
     1: every run alone)."""
     from sdp_cli.executor import check_executor_options
     from sdp_cli.experiment import load_experiment
@@ -272,10 +303,16 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
             done = 0
             for i, res in ex.imap_unordered(functools.partial(run_jobs, job=job), argsets):
                 names = ", ".join(jobs[i])
-                if res.ok:
+                if res.ok:   # a stack's member that failed alone has its status in place of its rows
+                    bad = {run: why for run, why in res.value.items() if isinstance(why, str)}
                     for run, rows in res.value.items():
-                        tables.append(pd.DataFrame(rows).assign(run=run))
-                    log(f"  {names}: done")
+                        if run not in bad:
+                            tables.append(pd.DataFrame(rows).assign(run=run))
+                    failed += [f"{run} ({why})" for run, why in bad.items()]
+                    for run, why in bad.items():
+                        log(f"  {run}: FAILED: {why}")
+                    if len(bad) < len(jobs[i]):
+                        log(f"  {', '.join(r for r in jobs[i] if r not in bad)}: done")
                 else:
                     failed += [f"{k} ({error_status(res.error)})" for k in jobs[i]]
                     log(f"  {names}: FAILED: {error_status(res.error)}")

@@ -279,6 +279,8 @@ def start_run(data: str | Path, out: str | Path, cfg: TrainConfig, device: str =
         norm = policy_from_checkpoint(prev or init_ck).normalizer
     # --init: the previous normalizer, widened to the new dataset's ranges; --resume: kept as is
     policy, tensors, E, action, dims = prepare(cfg, task, arrays, norm, dev, widen=init_ck is not None)
+    if cfg.compile:   # the training calls compiled (their first call compiles; TrainConfig.compile)
+        policy.compile_network()
     fitted_norm = {k: v.clone() for k, v in policy.normalizer.state_dict().items()}
     n_samples = next(iter(tensors.values())).shape[0]
     steps_per_epoch = epoch_steps(E, cfg.data.batch_size)
@@ -331,23 +333,44 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 
 
 def drive(group, on_step: Callable[[int], None] | None = None,
-          on_row: Callable[[Run, dict], None] | None = None) -> None:
+          on_row: Callable[[Run, dict], None] | None = None, regroup: Callable[[list], object] | None = None,
+          failed: dict | None = None) -> None:
     """Step the runs of ``group`` (:mod:`sdp_cli.train_step`: one run alone or a stack) until every one is done,
     recording each run's metrics and checkpoints; ``on_step(step)`` after each step (the furthest run's step),
     ``on_row(run, row)`` after each run's metrics row. Ctrl-C / SIGTERM saves every run at a step boundary; a
-    fresh run that fails before its first checkpoint leaves no folder; each run's final checkpoint at the end."""
-    from sdp_cli.interrupts import deferred
-    from sdp_cli.train_step import step
+    fresh run that fails before its first checkpoint leaves no folder; each run's final checkpoint at the end.
 
-    runs = group.runs
+    ``regroup`` (a stack): a run whose loss diverges leaves the group, ``failed[run.out]`` says why (its folder
+    keeps its last checkpoint, or goes if it has none and this call made it), and the others go on in
+    ``regroup(their runs)``; without it a divergence stops every run."""
+    from sdp_cli.interrupts import deferred
+    from sdp_cli.train_step import Diverged, step
+
+    runs = list(group.runs)
     for run in runs:
         run.t0 = run.last_ck = time.perf_counter()
         run.policy.train()
     with deferred() as interrupt, contextlib.ExitStack() as guards:
         for run in runs:
             guards.enter_context(_discard_if_failed_at_start(run.out, run.created, run.ck_path))
-        while not all(r.done for r in runs):
-            for run, res in zip(runs, step(group)):
+        while not all(r.done for r in group.runs):
+            gens = [r.gen.get_state() for r in runs] if regroup is not None else None
+            try:
+                results = step(group)
+            except Diverged as e:
+                if regroup is None or e.run is None or len(group.runs) == 1:
+                    raise
+                failed[e.run.out] = str(e)
+                for r, g in zip(runs, gens):   # the others redo this step with its draws
+                    r.gen.set_state(g)
+                runs.remove(e.run)
+                if e.run.created and not e.run.ck_path.exists():
+                    import shutil
+
+                    shutil.rmtree(e.run.out, ignore_errors=True)
+                group = regroup(runs)
+                continue
+            for run, res in zip(group.runs, results):
                 if res is not None:
                     row = run.record(*res)
                     if on_row is not None:

@@ -10,7 +10,7 @@ killed stack resumes every member.
 
 A run trained in a stack equals the same run trained alone to float32 rounding (``tests/test_train_stack.py``),
 whichever runs share its stack. Compatible runs (:func:`stack_key`): the same task, method, architecture (T_h,
-T_o, K, action, U-Net), batch size and Sobolev mode, path, projections and fraction; seeds, datasets (n_traj),
+T_o, K, action, U-Net), batch size, Sobolev mode, path, projections and fraction, and ``compile``; seeds, datasets (n_traj),
 epochs, alpha, learning rates and the other optimisation settings may differ. Members whose batches are smaller
 (a smaller dataset's last batch of an epoch, a finished run) are padded and their padded rows left out of their
 losses; a finished member stays in the stack but takes no step.
@@ -40,13 +40,17 @@ def stack_key(task: str, cfg: TrainConfig) -> tuple:
     """Runs with equal keys are compatible (see the module docstring)."""
     s = cfg.sobolev
     return (task, cfg.method, tuple(sorted((k, str(v)) for k, v in cfg.architecture().items())),
-            cfg.data.batch_size, s.mode, s.path, s.n_proj, s.fraction)
+            cfg.data.batch_size, s.mode, s.path, s.n_proj, s.fraction, cfg.compile)
 
 
 def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = "cpu",
-                log: Callable[[str], None] = print, on_step: Callable[[int], None] | None = None) -> list[Path]:
+                log: Callable[[str], None] = print, on_step: Callable[[int], None] | None = None,
+                inits: list | None = None, failed: dict | None = None) -> list[Path]:
     """Train (or resume, where a run folder holds a checkpoint) compatible runs as one stack; returns their final
-    checkpoints. One run alone is a stack of one (the solo trainer is :func:`sdp_cli.train.train`)."""
+    checkpoints. ``inits``: per run, a checkpoint to start from (``sdp train --init``: a loop's warm start) or
+    None. ``failed``: a dict that collects ``{run folder: why}`` of runs whose loss diverged, which leave the
+    stack while the others train on (their checkpoints are returned); without it a divergence stops the stack.
+    One run alone is a stack of one (the solo trainer is :func:`sdp_cli.train.train`)."""
     from sdp_cli.train import drive, start_run
     from sdp_cli.train_step import Stack
 
@@ -55,14 +59,17 @@ def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = 
     bad = [str(o) for o, c in zip(outs, cfgs) if not stackable(c)]
     if bad:
         raise SdpError(f"not stackable (a diffusion method with the Sobolev term in jvp mode, if any): {', '.join(bad)}")
-    runs = [start_run(d, o, c, device, resume=(Path(o) / "checkpoint.pt").exists()) for d, o, c in zip(datas, outs, cfgs)]
+    inits = inits or [None] * len(cfgs)
+    runs = [start_run(d, o, c, device, resume=(Path(o) / "checkpoint.pt").exists(), init=i)
+            for d, o, c, i in zip(datas, outs, cfgs, inits)]
     keys = {stack_key(r.base["task"], r.cfg) for r in runs}
     if len(keys) > 1:
         raise SdpError(f"runs {', '.join(map(str, outs))} cannot share a stack: they differ in task, method, "
                        "architecture, batch size or Sobolev settings")
     for run in runs:
         log(f"{run.out.name}: {run.describe()}")
-    drive(Stack(runs), on_step)
+    drive(Stack(runs), on_step, regroup=Stack if failed is not None else None, failed=failed)
+    runs = [r for r in runs if r.out not in (failed or {})]
     for run in runs:
         log(f"{run.out.name}: done, {run.step} steps, final loss "
             f"{run.metrics.rows[-1]['loss'] if run.metrics.rows else 'n/a'}")

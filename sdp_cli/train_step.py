@@ -29,10 +29,10 @@ from sdp_cli.stack_optim import StackedOptimisation
 class Diverged(SdpError):
     """The loss of a training step is not finite (names the run's step and, in a stack, its folder)."""
 
-    def __init__(self, loss: float, step: int, where: str = ""):
+    def __init__(self, loss: float, step: int, where: str = "", run=None):
         super().__init__(f"training diverged at step {step}{where} (loss {loss}); "
                          "try a lower --lr or --sobolev-alpha")
-        self.loss = loss
+        self.loss, self.run = loss, run
 
 
 class OneRun:
@@ -88,7 +88,7 @@ def step(group) -> list:
     results = group.losses([r.next_batch() if a else None for r, a in zip(runs, active)])
     for run, res in zip(runs, results):
         if res is not None and not torch.isfinite(res[0]):
-            raise Diverged(res[0].item(), run.step, f" of {run.out}" if len(runs) > 1 else "")
+            raise Diverged(res[0].item(), run.step, f" of {run.out}" if len(runs) > 1 else "", run)
     group.zero_grad()
     live = [res[0] for res in results if res is not None]
     (live[0] if len(live) == 1 else sum(live)).backward()

@@ -131,3 +131,23 @@ def test_incompatible_runs_are_refused(data, tmp_path):
         train_stack([data[2], data[3]], [tmp_path / "a", tmp_path / "b"], [a, a.with_options(method="dp")], log=quiet)
     with pytest.raises(SdpError, match="not stackable"):
         train_stack([data[2]], [tmp_path / "c"], [a.with_options(sobolev_mode="vjp")], log=quiet)
+
+
+def test_a_member_that_diverges_leaves_the_stack_and_the_others_train_on(data, tmp_path, float64):
+    """With ``failed`` (as `sdp pipeline --run` trains its stacks), a member whose loss diverges leaves the stack
+    (its fresh folder removed, the reason recorded) and the others finish as they would have without it."""
+    members = _members("dp")
+    cfgs = [c for _, c in members]
+    cfgs[1] = cfgs[1].with_options(lr=1e30)          # diverges at once
+    outs = [tmp_path / f"st{i}" for i in range(3)]
+    failed = {}
+    got = train_stack([data[n] for n, _ in members], outs, cfgs, log=quiet, failed=failed)
+    assert list(failed) == [outs[1]] and "diverged" in failed[outs[1]] and not outs[1].exists()
+    assert got == [outs[0] / "checkpoint.pt", outs[2] / "checkpoint.pt"]
+    ref = train_stack([data[members[0][0]], data[members[2][0]]], [tmp_path / "r0", tmp_path / "r2"],
+                      [cfgs[0], cfgs[2]], log=quiet)
+    for a, b in zip(got, ref):
+        assert load_checkpoint(a)["finished"]
+        _close(load_checkpoint(a), load_checkpoint(b), 1e-10)
+    with pytest.raises(SdpError, match="diverged"):   # without ``failed``: the stack stops
+        train_stack([data[2], data[3]], [tmp_path / "x0", tmp_path / "x1"], [cfgs[0], cfgs[1]], log=quiet)

@@ -77,6 +77,8 @@ class Policy(nn.Module):
     #: --run --stack``): it then gives ``stack(policies)`` (one module with ``parameters``, ``zero_grad`` and
     #: ``losses(draws)``) and ``draw(batch, generator)``; a family opts in, the others train each run alone
     stackable: ClassVar[bool] = False
+    #: the family compiles its network for training when the config says ``compile`` (:meth:`compile_network`)
+    compilable: ClassVar[bool] = False
 
     def __init__(self, config: TrainConfig, dims: dict):
         super().__init__()
@@ -97,6 +99,11 @@ class Policy(nn.Module):
     @classmethod
     def dims_for(cls, config: TrainConfig, task: Task, action: str) -> dict:
         """Network sizes ``{n_action, n_obs, n_xi, ndx}``."""
+        raise NotImplementedError
+
+    def compile_network(self) -> None:
+        """Compile the network's training calls (``TrainConfig.compile``; a family that sets :attr:`compilable`
+        implements it); the trainer calls it once before the first step. Weights and state dict stay the same."""
         raise NotImplementedError
 
     # ------------------------------------------------------------------ configuration

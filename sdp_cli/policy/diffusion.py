@@ -33,7 +33,7 @@ from sdp_cli.losses.sobolev import random_unit, sobolev_output_projection
 from sdp_cli.policy.base import Policy, as_tensor
 if TYPE_CHECKING:   # annotations only: the config does not import the families at run time either
     from sdp_cli.policy.config import TrainConfig
-from sdp_cli.policy.unet import ConditionalUnet1D, member_view, stack_members
+from sdp_cli.policy.unet import ConditionalUnet1D, compile_unet, member_view, stack_members
 
 
 def make_scheduler(cfg: TrainConfig) -> DDPMScheduler:
@@ -81,6 +81,7 @@ class DiffusionUnetPolicy(Policy):
 
     chunked = True
     stackable = True    # sdp_cli.train_stack trains several runs of this family as one stacked U-Net
+    compilable = True   # TrainConfig.compile: the U-Net's forward and tangent pass (compile_network)
 
     def __init__(self, config: TrainConfig, dims: dict):
         super().__init__(config, dims)
@@ -90,6 +91,11 @@ class DiffusionUnetPolicy(Policy):
         self.unet = ConditionalUnet1D(d["n_action"], d["n_xi"] + p.n_obs_steps * d["n_obs"], p.down_dims,
                                       p.kernel_size, p.n_groups, p.step_embed_dim)
         self.noise_scheduler = make_scheduler(config)
+
+    def compile_network(self) -> None:
+        """The U-Net's ``forward`` and ``forward_jvp`` through ``torch.compile`` (:mod:`sdp_cli.policy.compiling`);
+        the rest of a step (draws, optimizer, EMA) stays eager."""
+        compile_unet(self.unet)
 
     # ------------------------------------------------------------------ configuration
     @classmethod
@@ -330,6 +336,8 @@ class StackedDiffusion:
     def __init__(self, policies: list[DiffusionUnetPolicy]):
         self.policies, self.R = policies, len(policies)
         self.net = stack_members([p.unet for p in policies])
+        if policies[0].config.compile:
+            compile_unet(self.net)
         stacked = dict(self.net.named_parameters())
         #: the stacked parameters in every member's ``parameters()`` order (its optimiser's)
         self.parameters = []

@@ -286,3 +286,13 @@ def member_state_dict(stacked: ConditionalUnet1D, r: int, solo: ConditionalUnet1
     """Member ``r``'s weights of a stacked network as a state dict of the solo network ``solo`` (for shapes)."""
     ref = solo.state_dict()
     return {k: member_view(v, ref[k].dim(), stacked.R, r).clone() for k, v in stacked.state_dict().items()}
+
+
+def compile_unet(net: ConditionalUnet1D) -> None:
+    """Compile ``net.forward`` and ``net.forward_jvp`` in place (:func:`sdp_cli.policy.compiling.compiled`:
+    inductor, the shared cache); parameters and state dict stay the network's. The hand-written tangent pass traces without graph
+    breaks (its custom autograd functions included)."""
+    from sdp_cli.policy.compiling import compiled
+
+    net.forward = compiled(net.forward)
+    net.forward_jvp = compiled(net.forward_jvp)

@@ -1,0 +1,33 @@
+"""``torch.compile`` for training (``TrainConfig.compile``, ``sdp train --compile``): the network's calls compiled by
+inductor, with one persistent cache per machine that every run of the same shapes shares.
+
+A cold compile of the U-Net's forward and tangent pass costs minutes of CPU (``bench/compile_train.py``); inductor
+keeps what it compiled in its cache folder, here ``$SDP_COMPILE_CACHE`` (default ``$XDG_CACHE_HOME/sdp/inductor``,
+else ``~/.cache/sdp/inductor``) unless ``TORCHINDUCTOR_CACHE_DIR`` is set, so the next run of the same shapes, in
+any process, loads it in seconds. Inductor's generated kernels follow ``ATEN_CPU_CAPABILITY``, which
+:mod:`sdp_cli.kernels` caps at AVX2, so a compiled run gives the same numbers on other x86 CPUs too.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+CACHE_ENV = "SDP_COMPILE_CACHE"
+
+
+def cache_dir() -> Path:
+    """The inductor cache folder of this machine's runs (see the module docstring)."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "sdp" / "inductor"
+
+
+def compiled(fn):
+    """``torch.compile(fn)`` (inductor, the default mode) with the shared cache in effect; compiles at its first
+    call, again for a new input shape (a smaller last batch of an epoch)."""
+    import torch
+
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
+    return torch.compile(fn)
