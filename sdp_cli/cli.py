@@ -14,7 +14,7 @@ import typer
 
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
-                                 ToOpt, WorkersOpt, with_loop_rollout_options, with_train_options, clean_errors, int_list,
+                                 ToOpt, WorkersOpt, with_loop_algorithm_options, with_loop_rollout_options, with_train_options, clean_errors, int_list,
                                  set_threads, task_help)
 from sdp_cli.errors import SdpError
 from sdp_cli.seeds import check_loop_options
@@ -237,14 +237,11 @@ def train_cmd(
 @app.command("loop")
 @with_train_options(required=("method",), check=check_loop_options)
 @with_loop_rollout_options()
+@with_loop_algorithm_options()
 def loop_cmd(
     task: Annotated[str, typer.Option(help=task_help())],
     out: Annotated[Path, typer.Option(help="Run folder (it<k>/data.npz, policy/, eval/; summary.csv).")],
-    n_algo: Annotated[int, typer.Option("--n-algo", help="Iterations of Algorithm 1.")] = 1,
     n_traj: Annotated[str, typer.Option("--n-traj", help="Trajectories per iteration, e.g. 30 or 30,30,60 (last repeats).")] = "30",
-    reset_buffer: Annotated[bool, typer.Option("--reset-buffer/--keep-buffer", help="Train on the new collection only (paper) or on all collections so far.")] = True,
-    max_iter: Annotated[int, typer.Option("--max-iter", help="Solver iteration cap.")] = 1000,
-    to: ToOpt = DEFAULT_TO,
     workers: WorkersOpt = None,
     device: DeviceOpt = "auto",
     executor: ExecutorOpt = None,
@@ -253,6 +250,7 @@ def loop_cmd(
     progress: ProgressOpt = True,
     train=None,
     rollout=None,
+    algorithm=None,
 ) -> None:
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. The training options are `sdp train`'s
     (--epochs per iteration; --seed also seeds collection, 1000 * seed + k; the --save-at checkpoints are
@@ -261,9 +259,8 @@ def loop_cmd(
     from sdp_cli.train import resolve_device
 
     set_threads(threads)
-    cfg = LoopConfig(task=task, train=train, rollout=rollout, n_algo=n_algo, n_traj=int_list(n_traj, "--n-traj"),
-                     reset_buffer=reset_buffer, max_iter=max_iter, workers=workers,
-                     device=str(resolve_device(device)), executor=executor, scheduler=scheduler, to=to)
+    cfg = LoopConfig(task=task, train=train, rollout=rollout, **algorithm, n_traj=int_list(n_traj, "--n-traj"),
+                     workers=workers, device=str(resolve_device(device)), executor=executor, scheduler=scheduler)
     summary = run_loop(cfg, out, log=typer.echo, progress=progress)
     cols = [c for c in ("iteration", "t_a", "policy_cost_mean", "refined_cost_mean", "argmin_cost_mean",
                         "to_alone_cost_mean", "success_rate") if c in summary]

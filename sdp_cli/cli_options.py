@@ -197,24 +197,24 @@ def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[
     return decorate
 
 
-def with_loop_rollout_options(cls=None) -> Callable:
-    """Give ``sdp loop`` every rollout/evaluation option of :class:`~sdp_cli.loop_options.LoopRolloutConfig` as a
-    flag (``--t-a``, ``--eval-t-a 1,4,8``, ``--eval-refine/--no-eval-refine``, ...), generated from its fields
-    as the experiment keys are; the wrapped function receives ``rollout=LoopRolloutConfig(given options)``
-    (``cls``: a subclass with more options)."""
+def with_loop_options(cls, injected: str) -> Callable:
+    """Give ``sdp loop`` every option of a :mod:`sdp_cli.loop_options` class as a flag (``--n-algo``, ``--t-a``,
+    ``--eval-t-a 1,4,8``, ``--eval-refine/--no-eval-refine``, ...), generated from its fields as the experiment
+    keys are; the wrapped function receives ``<injected>=`` the options given: an instance of ``cls``, or, for
+    :class:`~sdp_cli.loop_options.LoopAlgorithmOptions` (``LoopConfig``'s own fields), a ``{field: value}`` dict
+    (the defaults are the fields')."""
     import inspect
     from dataclasses import fields
 
-    from sdp_cli.loop_options import LoopRolloutConfig, _default, option_kind
-
-    cls = cls or LoopRolloutConfig
+    from sdp_cli.loop_options import LoopAlgorithmOptions, _default, option_kind
 
     def param(f):
         base, item, optional = option_kind(f, cls)
-        flag = "--" + f.name.replace("_", "-")
+        flag = f.metadata.get("flag") or "--" + f.name.replace("_", "-")
         default = _default(f)
         if base is bool:
-            info = typer.Option(f"{flag}/--no-{flag[2:]}", help=f.metadata["help"], rich_help_panel="Loop options")
+            switch = flag if "/" in flag else f"{flag}/--no-{flag[2:]}"
+            info = typer.Option(switch, help=f.metadata["help"], rich_help_panel="Loop options")
             return inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=default,
                                      annotation=Annotated[bool, info])
         kind = str if item is not None else base
@@ -225,6 +225,7 @@ def with_loop_rollout_options(cls=None) -> Callable:
                                  annotation=Annotated[Optional[kind], info])
 
     opts = list(fields(cls))
+    as_dict = issubclass(cls, LoopAlgorithmOptions)
 
     def decorate(fn: Callable) -> Callable:
         params = [param(f) for f in opts]
@@ -239,8 +240,24 @@ def with_loop_rollout_options(cls=None) -> Callable:
                     continue
                 given[f.name] = (int_list(value, "--" + f.name.replace("_", "-"))
                                  if option_kind(f, cls)[1] is not None else value)
-            return fn(**kwargs, rollout=cls(**given))
+            return fn(**kwargs, **{injected: given if as_dict else cls(**given)})
 
-        return _with_params(wrapper, fn, "rollout", params)
+        return _with_params(wrapper, fn, injected, params)
 
     return decorate
+
+
+def with_loop_rollout_options(cls=None) -> Callable:
+    """:func:`with_loop_options` of :class:`~sdp_cli.loop_options.LoopRolloutConfig` (or a subclass with more
+    options): ``rollout=LoopRolloutConfig(given options)``."""
+    from sdp_cli.loop_options import LoopRolloutConfig
+
+    return with_loop_options(cls or LoopRolloutConfig, "rollout")
+
+
+def with_loop_algorithm_options(cls=None) -> Callable:
+    """:func:`with_loop_options` of :class:`~sdp_cli.loop_options.LoopAlgorithmOptions` (or a subclass):
+    ``algorithm={given options}``, the keyword arguments of ``LoopConfig``."""
+    from sdp_cli.loop_options import LoopAlgorithmOptions
+
+    return with_loop_options(cls or LoopAlgorithmOptions, "algorithm")

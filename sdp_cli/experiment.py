@@ -11,17 +11,17 @@ from pathlib import Path
 
 import yaml
 
-from sdp_cli.families import DEFAULT_TO
-from sdp_cli.loop_options import group_keys
 from sdp_cli.errors import SdpError
+from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig, group_keys
 
 PIPELINES_DIR = Path("pipelines")
-#: the group keys that are not loop rollout options (those come from LoopRolloutConfig's fields: below)
+#: the group keys that are not loop options (those come from the fields of sdp_cli.loop_options: below): what a
+#: group sweeps (methods x seeds x n_traj) and names, and the training options of its runs
 _GROUP_OWN = {"task": ("str", None), "methods": ("[str]", ["sdp"]), "seeds": ("[int]", [0]),
-              "n_traj": ("[int]", [30]), "n_algo": ("int", 1), "epochs": ("int", 1000), "save_at": ("[int]", []),
-              "horizon": ("int", 32), "max_iter": ("int", 1000), "train": ("dict", {}), "tag": ("str?", None),
-              "n_traj_schedule": ("[int]?", None), "to": ("str", DEFAULT_TO)}
-_GROUP_KEYS = {**_GROUP_OWN, **group_keys()}
+              "n_traj": ("[int]", [30]), "epochs": ("int", 1000), "save_at": ("[int]", []),
+              "horizon": ("int", 32), "train": ("dict", {}), "tag": ("str?", None),
+              "n_traj_schedule": ("[int]?", None)}
+_GROUP_KEYS = {**_GROUP_OWN, **group_keys(LoopAlgorithmOptions), **group_keys(LoopRolloutConfig)}
 GROUP_DEFAULTS = {k: d for k, (_, d) in _GROUP_KEYS.items() if k != "task"}
 
 

@@ -31,27 +31,24 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from sdp_cli.families import DEFAULT_TO
-from sdp_cli.loop_options import LoopRolloutConfig  # noqa: F401 (re-exported: sdp_cli.loop.LoopRolloutConfig)
+from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig  # (re-exported: sdp_cli.loop.*)
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.rules import check_fields, rule
+from sdp_cli.rules import rule
 from sdp_cli.policy.config import TrainConfig, flat_options
 
 
 @dataclass(frozen=True)
-class LoopConfig:
+class LoopConfig(LoopAlgorithmOptions):
     """One run of Algorithm 1: its task, the typed training config (:class:`TrainConfig`: method, epochs,
-    seed, architecture, ...), the rollout settings (:class:`LoopRolloutConfig`) and where the work runs."""
+    seed, architecture, ...), Algorithm 1's own options (:class:`~sdp_cli.loop_options.LoopAlgorithmOptions`:
+    ``n_algo``, ``reset_buffer``, ``max_iter``, ``to``, keyword-only), the rollout settings
+    (:class:`LoopRolloutConfig`) and where the work runs."""
 
     task: str
     train: TrainConfig
     rollout: LoopRolloutConfig = field(default_factory=LoopRolloutConfig)
-    n_algo: int = field(default=1, metadata=rule(ge=1))
     n_traj: tuple = field(default=(30,), metadata=rule(ge=1))  # per iteration; the last value repeats
-    reset_buffer: bool = True
-    max_iter: int = field(default=1000, metadata=rule(ge=1))
-    to: str = DEFAULT_TO           # the TO family of collection, refinement and TO alone (sdp_cli.trajopt)
     workers: int | None = None
     device: str = "cpu"
     executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
@@ -61,7 +58,7 @@ class LoopConfig:
         from sdp_cli.seeds import check_loop_seed
 
         object.__setattr__(self, "n_traj", tuple(int(n) for n in self.n_traj))
-        check_fields(self)
+        LoopAlgorithmOptions.__post_init__(self)
         check_loop_seed(self.seed, "seed", self.n_algo)
         if not self.n_traj:
             raise SdpError("n_traj must be positive integers, got []")

@@ -96,7 +96,7 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
     from sdp_cli.loop import LoopConfig
-    from sdp_cli.loop_options import from_group
+    from sdp_cli.loop_options import LoopAlgorithmOptions, from_group
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.seeds import check_loop_seed
 
@@ -104,10 +104,9 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
 
     train = TrainConfig.of(**{**(g["train"] or {}), "method": method, "epochs": g["epochs"], "seed": seed,
                               "horizon": g["horizon"], "save_at": [int(e) for e in g["save_at"] if e < g["epochs"]]})
-    rollout = from_group(g)   # every LoopRolloutConfig field is a group key (sdp_cli.loop_options)
-    return LoopConfig(task=g["task"], train=train, rollout=rollout, n_algo=g["n_algo"],
-                      n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), max_iter=g["max_iter"],
-                      workers=1, device="cpu", to=g["to"])
+    rollout = from_group(g)   # every loop option is a group key (sdp_cli.loop_options)
+    return LoopConfig(task=g["task"], train=train, rollout=rollout, **from_group(g, LoopAlgorithmOptions),
+                      n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), workers=1, device="cpu")
 
 
 def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: Path = Path(".")) -> dict:

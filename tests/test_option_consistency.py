@@ -103,7 +103,7 @@ def test_a_loop_rollout_option_added_once_is_a_flag_an_experiment_key_and_a_vali
     keys = group_keys(WithBudget)
     assert keys["eval_budget"] == ("int", 3) and keys["eval_every"] == ("[int]", [])
     assert {k: v for k, v in keys.items() if k in GROUP_TYPES} == {k: (GROUP_TYPES[k], GROUP_DEFAULTS[k])
-                                                                   for k in group_keys()}
+                                                                   for k in group_keys(LoopRolloutConfig)}
     assert not type_ok("3", keys["eval_budget"][0]) and type_ok([1, 2], keys["eval_every"][0])
     cfg = from_group({**{k: d for k, (_, d) in keys.items()}, "eval_budget": 7, "eval_every": [1, 3]}, WithBudget)
     assert cfg.eval_budget == 7 and cfg.eval_every == (1, 3)
@@ -126,13 +126,60 @@ def test_a_loop_rollout_option_added_once_is_a_flag_an_experiment_key_and_a_vali
     assert r.exit_code == 1 and "eval_budget" in r.output
 
 
-def test_every_loop_rollout_option_is_a_flag_of_loop_and_an_experiment_key():
-    """eval_refine was a flag of `sdp loop` that no experiment file could set: now both come from one field."""
+def test_every_loop_option_is_a_flag_of_loop_and_an_experiment_key():
+    """eval_refine was a flag of `sdp loop` that no experiment file could set, and reset_buffer too: now flag and
+    key come from one field (LoopRolloutConfig's, LoopAlgorithmOptions' that LoopConfig inherits)."""
     from dataclasses import fields
 
     from sdp_cli.experiment import GROUP_TYPES
-    from sdp_cli.loop_options import LoopRolloutConfig
+    from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig
 
-    names = {f.name for f in fields(LoopRolloutConfig)}
-    assert names <= set(_params("loop")) and names <= set(GROUP_TYPES)
-    assert "eval_refine" in names
+    for cls in (LoopRolloutConfig, LoopAlgorithmOptions):
+        names = {f.name for f in fields(cls)}
+        assert names <= set(_params("loop")) and names <= set(GROUP_TYPES)
+    assert {"eval_refine", "reset_buffer", "n_algo", "max_iter", "to"} <= set(GROUP_TYPES)
+
+
+def test_an_algorithm_option_added_once_is_a_flag_a_key_a_validated_loop_setting_and_a_column(tmp_path):
+    """A field added to LoopAlgorithmOptions (here a subclass, with a LoopConfig that inherits it) is at once a
+    flag of `sdp loop`, an experiment key with its type and default, a field of the LoopConfig a group builds,
+    range-checked, and, where runs differ in it, a column of the report's all_runs.csv (loop_config.json)."""
+    from dataclasses import dataclass
+
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli_options import with_loop_algorithm_options
+    from sdp_cli.loop import LoopConfig
+    from sdp_cli.loop_options import LoopAlgorithmOptions, from_group, group_keys, loop_opt
+    from sdp_cli.policy.config import TrainConfig
+
+    @dataclass(frozen=True, kw_only=True)
+    class WithWarmup(LoopAlgorithmOptions):
+        warm_iterations: int = loop_opt(0, "Iterations collected from the naive guess only.", ge=0)
+
+    @dataclass(frozen=True)
+    class Loop(LoopConfig, WithWarmup):
+        pass
+
+    keys = group_keys(WithWarmup)
+    assert keys["warm_iterations"] == ("int", 0) and keys["reset_buffer"] == ("bool", True)
+    g = {**{k: d for k, (_, d) in keys.items()}, "warm_iterations": 2, "reset_buffer": False}
+    cfg = Loop(task="pendulum", train=TrainConfig.of(method="dp"), **from_group(g, WithWarmup))
+    assert cfg.warm_iterations == 2 and not cfg.reset_buffer and cfg.to_dict()["warm_iterations"] == 2
+    with pytest.raises(SdpError, match="warm_iterations"):
+        Loop(task="pendulum", train=TrainConfig.of(method="dp"), warm_iterations=-1)
+    with pytest.raises(SdpError, match="to must be one of"):
+        Loop(task="pendulum", train=TrainConfig.of(method="dp"), to="cem")
+
+    seen = {}
+    app_ = typer.Typer()
+
+    @app_.command()
+    @with_loop_algorithm_options(WithWarmup)
+    def run(name: str = "x", algorithm=None) -> None:
+        seen.update(algorithm)
+
+    runner = CliRunner()
+    r = runner.invoke(app_, ["--warm-iterations", "3", "--keep-buffer", "--n-algo", "4"])
+    assert r.exit_code == 0, r.output
+    assert seen == {"warm_iterations": 3, "reset_buffer": False, "n_algo": 4}
