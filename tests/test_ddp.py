@@ -9,6 +9,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from sdp_cli.errors import SdpError
 from sdp_cli.solve_jobs import sample_xi
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import Task
@@ -183,6 +184,27 @@ def test_stored_gains_are_true_at_the_pipelines_tolerance(name):
     checks = check_gains(task, res, sorted(steps), eps=1e-4)
     assert all(c.converged for c in checks)
     assert np.median([c.rel_error for c in checks]) <= 1e-4, [(c.t, c.rel_error) for c in checks]
+
+
+@pytest.mark.parametrize("name", ["pendulum", "double_pendulum", pytest.param("quadrotor-0", marks=pytest.mark.slow),
+                                  pytest.param("ur5-fixed", marks=pytest.mark.slow)])
+def test_the_psd_hessian_model_stays_at_the_exact_models_optima_with_the_same_gains(name):
+    """The iterations' PSD-projected cost Hessians (the default) change the path, not the stationary points: warm
+    started at an optimum of the exact-Hessian DDP (the model before issue "Our box-FDDP within 2x...") it stays
+    there (<= 1e-6 relative cost) and stores the same gains (both from the exact Lagrangian Hessian)."""
+    task = get_task(name)
+    xis, x0, X0, U0 = _naive_batch(task, 2, seed=2)
+    exact = DDPSolver(task, hessian="exact").solve_batch(x0, xis, X0, U0)
+    assert all(r.converged for r in exact)
+    psd = DDPSolver(task).solve_batch(x0, xis, np.stack([r.X for r in exact]), np.stack([r.U for r in exact]))
+    for a, b in zip(exact, psd):
+        assert b.converged and abs(b.cost - a.cost) <= 1e-6 * abs(a.cost), (a.cost, b.cost)
+        np.testing.assert_allclose(b.K, a.K, rtol=1e-4, atol=1e-4 * np.abs(a.K).max())
+
+
+def test_the_hessian_model_is_checked():
+    with pytest.raises(SdpError, match="hessian must be one of"):
+        DDPSolver(get_task("pendulum"), hessian="bfgs")
 
 
 def test_non_convergence_is_reported():
