@@ -12,7 +12,11 @@ Algorithm (our implementation, read from the papers; no crocoddyl or aligator co
   differential dynamic programming", ICRA 2014 (:mod:`sdp_cli.trajopt.boxqp`): ``k_t`` solves
   ``min 1/2 du' Quu du + Qu' du`` on ``u_lb - u_t <= du <= u_ub - u_t``, ``K_t`` has zero rows on the clamped
   controls; the rollout clips to the bounds.
-- **Hessians**: Gauss-Newton in the dynamics (exact cost Hessians, no second-order dynamics term), as FDDP.
+- **Hessians**: Gauss-Newton in the dynamics (no second-order dynamics term), as FDDP, and the cost Hessians
+  projected onto the positive semi-definite cone (``hessian="psd"``, the default; :func:`_psd_model`): crocoddyl's
+  residual costs give it a Gauss-Newton model, our tasks' costs are plain casadi expressions, whose exact
+  Hessians are indefinite on UR5 (most iterations were failed factorizations: 95-141 iterations from the naive
+  guess, 14-48 with the projection, the same optima). ``hessian="exact"`` (before 2026-12-06) for comparisons.
   The feedback gains stored with a solution are recomputed at the converged point with the exact Hessian of
   the Lagrangian (co-states ``lambda_{t+1} = V_x(t+1)``) by :func:`sdp_cli.trajopt.gains.riccati_gains`, the
   same code that gives fatrop's solutions their gains, so a DDP dataset trains SDP on true sensitivities. They
