@@ -165,6 +165,41 @@ def exchange(inp: str, out: str) -> None:
     Path(out).write_text(json.dumps({"rows": rows}))
 
 
+def ddp_rows(task, name, n, repeats, batch, DDPSolver, sample_xi) -> list[dict]:
+    """Our box-FDDP (sdp_cli/trajopt/ddp.py, its default Hessian model) on the same instances: in batches of
+    ``batch`` (the pipeline's; time per instance = the batch's wall time / its size) and each instance alone
+    (best of ``repeats``); gains off, as crocoddyl's solve has none."""
+    solver = DDPSolver(task)
+    xis = np.array([sample_xi(task, 0, i) for i in range(n)])
+    g = [task.naive_guess(x) for x in xis]
+    x0, X0, U0 = (np.array([task.initial_state(x) for x in xis]), np.array([a for a, _ in g]),
+                  np.array([b for _, b in g]))
+    solver.solve_batch(x0[:1], xis[:1], X0[:1], U0[:1], gains=False)     # build the compiled maps
+    rows = []
+    for j in range(0, n, batch):
+        sl = slice(j, j + batch)
+        best, res = None, None
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            res = solver.solve_batch(x0[sl], xis[sl], X0[sl], U0[sl], gains=False)
+            wall = time.perf_counter() - t0
+            best = wall if best is None else min(best, wall)
+        for k, r in enumerate(res):
+            rows.append({"task": name, "solver": f"ours (box-FDDP, batch of {batch})", "i": j + k, "ok": r.converged,
+                         "cost": task.cost(r.X, r.U, xis[j + k]), "iterations": r.iterations,
+                         "time": best / len(res)})
+    for i in range(n):
+        best = None
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            r = solver.solve_from(x0[i], xis[i], X0[i], U0[i], gains=False)
+            wall = time.perf_counter() - t0
+            best = wall if best is None else min(best, wall)
+        rows.append({"task": name, "solver": "ours (box-FDDP, alone)", "i": i, "ok": r.converged,
+                     "cost": task.cost(r.X, r.U, xis[i]), "iterations": r.iterations, "time": best})
+    return rows
+
+
 def main() -> None:
     if len(sys.argv) == 4 and sys.argv[1] == "--exchange":
         exchange(sys.argv[2], sys.argv[3])
@@ -173,6 +208,7 @@ def main() -> None:
     ap.add_argument("--tasks", default="pendulum,double_pendulum,ur5-fixed")
     ap.add_argument("--n", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--ddp-batch", type=int, default=16, help="our box-FDDP's batch (the pipeline's: 16)")
     a = ap.parse_args()
     import crocoddyl
     import pandas as pd
@@ -184,10 +220,13 @@ def main() -> None:
 
     print(f"crocoddyl {crocoddyl.__version__}, pinocchio {pin.__version__}, {platform.machine()}, "
           f"python {platform.python_version()}; n = {a.n} instances per task, best of {a.repeats} runs")
+    from sdp_cli.trajopt.ddp import DDPSolver
+
     rows = []
     for name in a.tasks.split(","):
         task = get_task(name)
         ours = get_solver(task, max_iter=1000)
+        rows += ddp_rows(task, name, a.n, a.repeats, a.ddp_batch, DDPSolver, sample_xi)
         print(f"{name}: dynamics check, max |x_croc - x_ours| = {check_same_dynamics(task, sample_xi(task, 0, 0)):.2e}; "
               f"cost check, relative |cost_croc - cost_ours| = {check_same_cost(task, sample_xi(task, 0, 0)):.2e}")
         for i in range(a.n):
@@ -208,21 +247,27 @@ def main() -> None:
                 rows.append({"task": name, "solver": f"crocoddyl {kind}", "i": i, "ok": ok and viol <= 1e-6,
                              "cost": task.cost(X, U, xi), "iterations": it, "time": best})
     df = pd.DataFrame(rows)
-    ours_cost = df[df.solver.str.startswith("ours")].set_index(["task", "i"]).cost
+    ours_cost = df[df.solver == "ours (fatrop, multiple shooting)"].set_index(["task", "i"]).cost
     df["cost_vs_ours"] = [c - ours_cost[(t, i)] for t, i, c in zip(df.task, df.i, df.cost)]
     agg = df.groupby(["task", "solver"], sort=False).agg(
         converged=("ok", "mean"), cost_mean=("cost", "mean"), cost_median=("cost", "median"),
         lower_cost_than_ours=("cost_vs_ours", lambda s: int((s < -1e-6).sum())),
-        iterations=("iterations", "mean"), time_ms_mean=("time", lambda s: 1e3 * s.mean()),
+        iterations=("iterations", "mean"), iterations_median=("iterations", "median"),
+        time_ms_mean=("time", lambda s: 1e3 * s.mean()),
         time_ms_median=("time", lambda s: 1e3 * s.median()))
     print(agg.to_string(float_format=lambda v: f"{v:.4g}"))
     for name in a.tasks.split(","):
         t = agg.loc[name]
-        o = t.loc["ours (fatrop, multiple shooting)", "time_ms_median"]
-        for kind in ("BoxFDDP", "BoxDDP"):
-            c = t.loc[f"crocoddyl {kind}", "time_ms_median"]
-            print(f"{name}: median time ours / crocoddyl {kind} = {o / c:.2f} "
-                  f"({'ours faster' if o < c else 'crocoddyl faster'})")
+        for ours_name in [s for s in t.index if s.startswith("ours")]:
+            o = t.loc[ours_name, "time_ms_median"]
+            for kind in ("BoxFDDP", "BoxDDP"):
+                c = t.loc[f"crocoddyl {kind}", "time_ms_median"]
+                print(f"{name}: median time {ours_name} / crocoddyl {kind} = {o / c:.2f} "
+                      f"({'ours faster' if o < c else 'crocoddyl faster'})")
+        it = t.loc["crocoddyl BoxFDDP", "iterations_median"]
+        for ours_name in [s for s in t.index if s.startswith("ours (box-FDDP")]:
+            print(f"{name}: median iterations {ours_name} / crocoddyl BoxFDDP = "
+                  f"{t.loc[ours_name, 'iterations_median'] / it:.2f}")
 
 
 if __name__ == "__main__":
