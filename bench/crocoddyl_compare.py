@@ -211,6 +211,8 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ddp-batch", type=int, default=16, help="our box-FDDP's batch (the pipeline's: 16)")
+    ap.add_argument("--ddp-stop", default="ours", help="our box-FDDP's stopping measure: ours or crocoddyl "
+                    "(|d1 + d2/2| <= 1e-9, crocoddyl 3.x's rule: iterations under one rule)")
     a = ap.parse_args()
     import crocoddyl
     import pandas as pd
@@ -228,7 +230,7 @@ def main() -> None:
     for name in a.tasks.split(","):
         task = get_task(name)
         ours = get_solver(task, max_iter=1000)
-        rows += ddp_rows(task, name, a.n, a.repeats, a.ddp_batch, DDPSolver, sample_xi)
+        rows += ddp_rows(task, name, a.n, a.repeats, a.ddp_batch, lambda t: DDPSolver(t, stop_rule=a.ddp_stop), sample_xi)
         print(f"{name}: dynamics check, max |x_croc - x_ours| = {check_same_dynamics(task, sample_xi(task, 0, 0)):.2e}; "
               f"cost check, relative |cost_croc - cost_ours| = {check_same_cost(task, sample_xi(task, 0, 0)):.2e}")
         for i in range(a.n):

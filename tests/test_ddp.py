@@ -353,3 +353,16 @@ def test_every_iteration_on_a_quadrotor_with_inactive_constraints_takes_a_step(m
                                       gains=False)
     assert all(r.converged for r in res)
     assert sum(searched) == sum(r.iterations for r in res)
+
+
+def test_crocoddyls_stopping_rule_is_an_option_and_stops_at_the_same_optimum():
+    """stop_rule="crocoddyl" (|d1 + d2/2| <= tol, crocoddyl 3.x's solve) for comparisons of iterations: on the
+    pendulum it ends at the same optimum as our rule, the measure at the solution at most tol."""
+    task = get_task("pendulum")
+    xis, x0, X0, U0 = _naive_batch(task, 3, seed=4)
+    ours = DDPSolver(task).solve_batch(x0, xis, X0, U0, gains=False)
+    croc = DDPSolver(task, stop_rule="crocoddyl").solve_batch(x0, xis, X0, U0, gains=False)
+    for a, b in zip(ours, croc):
+        assert a.converged and b.converged and abs(a.cost - b.cost) <= 1e-6 * a.cost
+    with pytest.raises(SdpError, match="stop_rule must be one of"):
+        DDPSolver(task, stop_rule="gradient")

@@ -80,6 +80,10 @@ REG_INIT, REG_MIN, REG_MAX, REG_FACTOR = 1e-9, 1e-9, 1e9, 10.0
 #: (median over t; tests/test_ddp.py checks them against finite differences at the pipeline's settings)
 POLISH_TOL, POLISH_MAX_ITER = 1e-13, 30
 STEP_INC, STEP_DEC = 0.01, 0.5
+#: the stopping measure compared with ``tol``: "ours" (the squared free part of Q_u summed over the horizon,
+#: crocoddyl's ``stoppingCriteria()``) or "crocoddyl" (``|d1 + d2/2|`` of the full step, what crocoddyl 3.x's solve
+#: stops on): bench/crocoddyl_compare.py compares iterations under one rule with ``--ddp-stop crocoddyl``
+STOP_RULES = ("ours", "crocoddyl")
 #: the Hessian model of the iterations: "psd" (the cost Hessians projected onto the PSD cone, ddp_passes._psd_model)
 #: or "exact"; the stored gains use the exact Hessian of the Lagrangian either way
 HESSIANS = ("psd", "exact")
@@ -92,10 +96,12 @@ class DDPSolver(PassesMixin, GainsMixin):
     solver_name = "ddp"
 
     def __init__(self, task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER, tol: float = STOP_TOL,
-                 jit: bool | None = None, hessian: str = "psd"):
+                 jit: bool | None = None, hessian: str = "psd", stop_rule: str = "ours"):
         if hessian not in HESSIANS:
             raise SdpError(f"hessian must be one of {', '.join(HESSIANS)}, got {hessian!r}")
-        self.hessian = hessian
+        if stop_rule not in STOP_RULES:
+            raise SdpError(f"stop_rule must be one of {', '.join(STOP_RULES)}, got {stop_rule!r}")
+        self.hessian, self.stop_rule = hessian, stop_rule
         self.task, self.T = task, int(task.T if horizon is None else horizon)
         if self.T < 1 or int(max_iter) < 0 or not tol > 0:
             raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
@@ -251,7 +257,11 @@ class DDPSolver(PassesMixin, GainsMixin):
             gaps = _mv(d["Jm"], amb) if self.general else amb       # in the tangent space of x_0..x_T
             cost[idx] = d["cost"]
             bad = ~np.isfinite(d["J"])
-            k, K, Vx, free, stop, ok = self._backward(d, np.where(np.isfinite(gaps), gaps, 0.0), Ua, reg[idx])
+            clean = np.where(np.isfinite(gaps), gaps, 0.0)
+            k, K, Vx, free, stop, ok = self._backward(d, clean, Ua, reg[idx])
+            if self.stop_rule == "crocoddyl":   # crocoddyl 3.x's solve: |d1 + d2 / 2| of the full step's LQ model
+                d1, d2 = self._model(d, clean, k, K)
+                stop = np.abs(d1 + 0.5 * d2)
             feasible = np.abs(amb).max(axis=(1, 2)) <= GAP_TOL
             stationary = ok & feasible & ~bad
             viol = al.violation(d["h"]) if task.n_h else np.zeros(len(idx))
