@@ -148,7 +148,9 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
         # their rollouts made before the setting existed used inverse dynamics
         "conversion": (rmeta["config"]["conversion"] if "conversion" in rmeta["config"]
                        else _conversion_before_the_setting(rmeta, pcfg)),
-        "horizon": horizon, "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"), "n": len(cost),
+        "horizon": horizon, "train_seed": pcfg.get("seed"), "test_seed": rmeta["config"].get("seed"),
+        # trained with the network compiled (TrainConfig.compile: other numerics than eager at float32 rounding)
+        "compiled": bool(pcfg.get("compile", False)), "n": len(cost),
         "policy_cost_mean": float(np.mean(cost)) if np.all(np.isfinite(cost)) else float("inf"),
         "policy_cost_median": float(np.median(cost)),
         **terminal_cost_mean(r, rmeta),
