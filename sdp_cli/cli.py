@@ -42,6 +42,9 @@ def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=
               "processes inherit it through SDP_TASK_MODULES. (--task-module: its older name.)")] = None,
           ) -> None:
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
+    from sdp_cli.trajopt.timeout import solve_timeout
+
+    solve_timeout()   # a bad SDP_SOLVE_TIMEOUT is one line now, not a silent default (or a failure in a worker)
     if task_module:
         from sdp_cli.tasks import load_task_module
 

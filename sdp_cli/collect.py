@@ -22,7 +22,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +35,9 @@ from sdp_cli.executor import error_status
 from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
                                  refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
 from sdp_cli.tasks import Task, get_task
+
+if TYPE_CHECKING:   # the annotation of collect(executor=...)
+    from sdp_cli.executor import Executor
 
 @dataclass(frozen=True)
 class CollectConfig:

@@ -324,3 +324,18 @@ def test_a_timing_file_of_another_artifact_is_ignored(made, tmp_path, artifact):
     target = dst / "checkpoint.pt" if dst.is_dir() else dst
     target.write_bytes(target.read_bytes() + b"\0")             # another artifact's bytes at the same path
     assert load_timing(dst) == {} and str(timing_path(dst)) in IGNORED_TIMINGS
+
+
+@pytest.mark.parametrize("value", ["abc", "nan", "-1", "inf"])
+def test_a_bad_solve_timeout_is_one_line_not_a_silent_default(value, monkeypatch):
+    """SDP_SOLVE_TIMEOUT=abc used to fall back to the default without a word."""
+    from typer.testing import CliRunner
+
+    from sdp_cli.cli import app
+
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", value)
+    r = CliRunner().invoke(app, ["tasks"])
+    assert r.exit_code == 1 and "SDP_SOLVE_TIMEOUT must be a number of seconds" in r.output
+    assert "Traceback" not in r.output
+    monkeypatch.setenv("SDP_SOLVE_TIMEOUT", "0")
+    assert CliRunner().invoke(app, ["tasks"]).exit_code == 0

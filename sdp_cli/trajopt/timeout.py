@@ -23,6 +23,7 @@ this process, unguarded). On platforms without ``fork`` the calls are not guarde
 
 from __future__ import annotations
 
+import math
 import os
 import pickle
 import select
@@ -42,11 +43,17 @@ class SolveTimeout(Exception):
 def solve_timeout() -> float:
     """The limit in seconds from ``SDP_SOLVE_TIMEOUT`` (0: unguarded)."""
     raw = os.environ.get("SDP_SOLVE_TIMEOUT", "")
+    if not raw.strip():
+        return DEFAULT_TIMEOUT
     try:
-        value = float(raw) if raw.strip() else DEFAULT_TIMEOUT
+        value = float(raw)
     except ValueError:
-        value = DEFAULT_TIMEOUT
-    return max(0.0, value)
+        value = float("nan")
+    if not (math.isfinite(value) and value >= 0):   # a typo is one clear error, not the default in silence
+        from sdp_cli.errors import SdpError
+
+        raise SdpError(f"SDP_SOLVE_TIMEOUT must be a number of seconds >= 0 (0: unguarded), got {raw!r}")
+    return value
 
 
 def _send(fd: int, obj: Any) -> None:
