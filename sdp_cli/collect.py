@@ -39,6 +39,7 @@ from sdp_cli.tasks import Task, get_task
 if TYPE_CHECKING:   # the annotation of collect(executor=...)
     from sdp_cli.executor import Executor
 
+
 @dataclass(frozen=True)
 class CollectConfig:
     """Everything that determines a collection's content."""
