@@ -119,45 +119,62 @@ def _config(method: str, T_h: int, B: int, action: str | None, train=None):
     return TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
 
 
-def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
-                 max_s: float = 5.0, train=None, first: list | None = None) -> float:
-    """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
-    clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step);
-    ``train``: the run's config (else the method's defaults at ``T_h``)."""
+def _timed_runs(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None, device, train) -> list:
+    """R runs as the trainer holds them (policy, AdamW, EMA, CPU generator; no LR schedule: a scalar update),
+    each stepping its own synthetic batch; run ``r`` seeded ``r``."""
     from types import SimpleNamespace
 
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
     from sdp_cli.train import ema_for, optimizer_for
-    from sdp_cli.train_step import OneRun, step as train_step
 
     task = get_task(task_name)
     cfg = _config(method, T_h, B, action, train)
     dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
-    torch.manual_seed(0)
-    policy = make_policy(cfg, dims).to(device)
-    if cfg.compile:      # as the trainer does (its first step compiles: the warm-up, ``first``)
-        policy.compile_network()
-    opt = optimizer_for(cfg, policy.parameters())
-    ema = ema_for(cfg, policy.parameters())
-    gen = torch.Generator().manual_seed(0)
-    batch = _synthetic_batch(method, dims, T_h, B, gen, device, cfg.policy.n_obs_steps)
-    g = torch.Generator(device=device).manual_seed(0)
-    run = SimpleNamespace(policy=policy, cfg=cfg, opt=opt, ema=ema, gen=g, sched=None, done=False, step=0,
-                          next_batch=lambda: batch)
-    group = OneRun(run)
+    runs = []
+    for r in range(R):
+        torch.manual_seed(r)
+        pol = make_policy(cfg, dims).to(device)
+        gen = torch.Generator().manual_seed(r)
+        batch = _synthetic_batch(method, dims, T_h, B, gen, device, cfg.policy.n_obs_steps)
+        opt = optimizer_for(cfg, pol.parameters())
+        runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, ema=ema_for(cfg, pol.parameters()),
+                                    sched=None, done=False, step=0, device=torch.device(device),
+                                    next_batch=(lambda b=batch: b)))
+    return runs
 
-    def step():   # the trainer's step (without its LR schedule: a scalar update)
+
+def _step_of(group):
+    """One trainer step of ``group`` (:func:`sdp_cli.train_step.step`), its losses read as a metrics row does
+    (a device sync on CUDA)."""
+    from sdp_cli.train_step import step as train_step
+
+    def step():
         for loss, _, _ in train_step(group):
-            loss.detach().item()    # the metrics row reads the loss every step (a device sync on CUDA)
+            loss.detach().item()
 
-    return _median_seconds(step, max_s, device, first)
+    return step
+
+
+def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
+                 max_s: float = 5.0, train=None, first: list | None = None) -> float:
+    """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
+    clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step);
+    ``train``: the run's config (else the method's defaults at ``T_h``); ``first``: gets the warm-up step's
+    seconds (a compiled config's compile)."""
+    from sdp_cli.train_step import OneRun
+
+    (run,) = _timed_runs(task_name, method, T_h, B, 1, action, device, train)
+    if run.cfg.compile:      # as the trainer does (its first step compiles: the warm-up, ``first``)
+        run.policy.compile_network()
+    return _median_seconds(_step_of(OneRun(run)), max_s, device, first)
 
 
 def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
               log=lambda s: None) -> dict:
-    """``{TrainStage.key: (B_lo, t_lo, B_hi, t_hi)}`` measured step times; a compiled config's first step (its
-    compile) into :data:`COMPILE_SECONDS`."""
+    """``{TrainStage.key: (B_lo, t_lo, B_hi, t_hi)}`` measured step times, and ``{("compile", key): seconds}``: a
+    compiled config's first step, its compile as this machine's cache has it (cold: minutes; warm: seconds),
+    charged once per training stage."""
     combos: dict = {}
     stage = {}
     for st in train:
@@ -170,18 +187,12 @@ def calibrate(train: list[TrainStage], device="cpu", budget_s: float = 60.0,
         lo, hi = min(bs), max(bs)
         first = [] if stage[key].train is not None and stage[key].train.compile else None
         t_lo = step_seconds(*key[:3], lo, key[3], device, per, stage[key].train, first)
-        if first:
-            COMPILE_SECONDS[key] = first[0]
+        out[("compile", key)] = first[0] if first else 0.0
         t_hi = t_lo if hi == lo else step_seconds(*key[:3], hi, key[3], device, per, stage[key].train)
         out[key] = (lo, t_lo, hi, t_hi)
         log(f"calibrated {key[1]} on {key[0]} (T_h {key[2]}): {t_lo * 1e3:.1f} ms at B={lo}"
             + (f", {t_hi * 1e3:.1f} ms at B={hi}" if hi != lo else ""))
     return out
-
-
-#: ``{TrainStage.key: seconds}``: the first step of a compiled config (``TrainConfig.compile``), its compile as
-#: this machine's cache has it (cold: minutes; warm: seconds), charged once per training stage
-COMPILE_SECONDS: dict = {}
 
 
 def _median_seconds(step, max_s: float, device="cpu", first: list | None = None) -> float:
@@ -206,36 +217,11 @@ def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, 
                          device="cpu", max_s: float = 5.0, train=None, first: list | None = None) -> float:
     """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_step.Stack`, the
     trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
-    synthetic batches; median of the steps that fit in ``max_s`` (at least 2, after one warm-up); ``train``: the
-    runs' config (else the method's defaults at ``T_h``)."""
-    from types import SimpleNamespace
+    synthetic batches; as :func:`step_seconds` otherwise (the stack compiles itself where the config says so)."""
+    from sdp_cli.train_step import Stack
 
-    from sdp_cli.policy.registry import make_policy
-    from sdp_cli.tasks import get_task
-    from sdp_cli.train import ema_for, optimizer_for
-    from sdp_cli.train_step import Stack, step as train_step
-
-    task = get_task(task_name)
-    cfg = _config(method, T_h, B, action, train)
-    dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
-    runs = []
-    for r in range(R):
-        torch.manual_seed(r)
-        pol = make_policy(cfg, dims).to(device)
-        opt = optimizer_for(cfg, pol.parameters())
-        gen = torch.Generator().manual_seed(r)
-        batch = _synthetic_batch(method, dims, T_h, B, gen, device, cfg.policy.n_obs_steps)
-        runs.append(SimpleNamespace(policy=pol, cfg=cfg, gen=gen, opt=opt, done=False, step=0, device=torch.device(device),
-                                    sched=torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0),
-                                    ema=ema_for(cfg, pol.parameters()),
-                                    next_batch=(lambda b=batch: b)))
-    stack = Stack(runs)
-
-    def step():
-        for loss, _, _ in train_step(stack):
-            loss.detach().item()
-
-    return _median_seconds(step, max_s, device, first)
+    stack = Stack(_timed_runs(task_name, method, T_h, B, R, action, device, train))
+    return _median_seconds(_step_of(stack), max_s, device, first)
 
 
 def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
@@ -300,7 +286,7 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         r["steps"] += st.steps
         r["samples"] += st.epochs * st.E
         for d in devices:
-            r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B) + COMPILE_SECONDS.get(st.key, 0.0)
+            r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B) + cals[d][("compile", st.key)]
     from sdp_cli.runner import pack
     from sdp_cli.train_stack import DEFAULT_STACK
 
