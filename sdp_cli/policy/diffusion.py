@@ -231,8 +231,7 @@ class DiffusionUnetPolicy(Policy):
             term = term + ((target - yd[:, T_o:].reshape(n, -1)) ** 2).sum(-1)
         term = term * (J.shape[-1] / J.shape[1]) / len(ydots)
         wc = d["w_cap"]
-        sob = self.sobolev_scale * (term.mean() if wc is None else (wc[:n] * term).mean())
-        return dp + self.config.sobolev.weight * sob, {"dp": dp.detach(), "sobolev": sob.detach()}
+        return self._total(dp, term, None if wc is None else wc[:n])
 
     def _vjp_loss(self, batch: dict, generator):
         """The Sobolev term by output projection (eq. (6), reverse over reverse; ``sobolev_mode vjp``)."""
@@ -252,9 +251,13 @@ class DiffusionUnetPolicy(Policy):
         J = batch["jac"][:, T_o:]
         pred, term = sobolev_output_projection(f, J.shape[-1], J, cfg.n_proj, generator)
         dp = ((pred - tau0[:, T_o:]) ** 2).mean()
-        w = batch.get("sob_weight")
-        sob = self.sobolev_scale * (term.mean() if w is None else (w * term).mean())
-        return dp + cfg.weight * sob, {"dp": dp.detach(), "sobolev": sob.detach()}
+        return self._total(dp, term, batch.get("sob_weight"))
+
+    def _total(self, dp, term, w_cap):
+        """``(loss, parts)``: the regression term plus ``alpha`` times the balanced Sobolev term, its per-sample
+        errors ``term (n,)`` weighted by ``w_cap (n,)`` (``sobolev_cap``) where given."""
+        sob = self.sobolev_scale * (term.mean() if w_cap is None else (w_cap * term).mean())
+        return dp + self.config.sobolev.weight * sob, {"dp": dp.detach(), "sobolev": sob.detach()}
 
     @classmethod
     def stack(cls, policies: list["DiffusionUnetPolicy"]) -> "StackedDiffusion":
