@@ -142,7 +142,7 @@ class Policy(nn.Module):
 
     def sampler_options(self, k_rollout: int | None = None) -> dict:
         """The validated sampler keywords of :meth:`plan`; a family without a sampler takes none."""
-        if self.chunked and hasattr(self, "K"):       # a chunked family with a sampler of K steps
+        if self.chunked and type(self).sampler_steps(self.config) is not None:   # the family declares a sampler
             return ChunkPlanning.sampler_options(self, k_rollout)
         if k_rollout is not None:
             from sdp_cli.errors import SdpError
