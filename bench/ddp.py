@@ -1,11 +1,14 @@
 """Box-FDDP (sdp_cli/trajopt/ddp.py) batched: time per instance against the batch size N and the horizon T,
 where the time goes, and the goal (double pendulum <= 20 ms amortized per instance at N = 50 on 1 thread).
 
-    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200]
+    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200] [--refill 16]
 
 Instances: collection seed 0, indices 0..N-1, from the naive guess; the compiled functions are built (and
 cached) before timing. Prints per (T, N): converged, mean / max iterations, batch wall time, amortized ms per
-instance and per instance-iteration; then a profile of the N = max, T = task default batch by phase.
+instance and per instance-iteration; then a profile of the N = max, T = task default batch by phase. With
+``--refill W``: the N = max instances solved as batches of W in turn against one call that keeps W iterating and
+starts the next instance as one finishes (``solve_batch(width=W)``), in process CPU time, round-robin over
+``--repeats``, with a check that every instance's solution is the same both ways.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ def main() -> None:
     ap.add_argument("--task", default="double_pendulum")
     ap.add_argument("--sizes", default="1,10,50")
     ap.add_argument("--horizons", default="50,100,200")
+    ap.add_argument("--refill", type=int, default=0, help="compare batches of this width with a refilled batch")
+    ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args()
     import torch
 
@@ -71,6 +76,26 @@ def main() -> None:
     for name in ("_backward", "box_qp", "_line_search", "_rollout", "_derivatives", "_model"):
         cum = sum(v[3] for k, v in st.stats.items() if k[2] == name)
         print(f"  {name:14s} {cum:7.3f} s  {cum / total:5.1%}")
+    if a.refill:
+        refill(solver, args, a.refill, a.repeats)
+
+
+def refill(solver, args, w: int, repeats: int) -> None:
+    """Batches of ``w`` in turn against one refilled batch of width ``w`` (process CPU time per instance)."""
+    n = len(args[0])
+    times = {"batches": [], "refill": []}
+    for _ in range(repeats):
+        t0 = time.process_time()
+        turn = [r for j in range(0, n, w) for r in solver.solve_batch(*[v[j:j + w] for v in args], gains=False)]
+        times["batches"].append(time.process_time() - t0)
+        t0 = time.process_time()
+        filled = solver.solve_batch(*args, gains=False, width=w)
+        times["refill"].append(time.process_time() - t0)
+    same = all(np.array_equal(p.X, q.X) and np.array_equal(p.U, q.U) and p.iterations == q.iterations
+               for p, q in zip(turn, filled))
+    b, r = (1000 * np.median(times[k]) / n for k in ("batches", "refill"))
+    print(f"\nrefill (N = {n}, width {w}, median of {repeats}, CPU ms per instance): batches of {w} in turn {b:.1f}, "
+          f"refilled {r:.1f}, ratio {b / r:.2f}x; same solutions: {same}")
 
 
 if __name__ == "__main__":

@@ -207,6 +207,24 @@ def test_the_hessian_model_is_checked():
         DDPSolver(get_task("pendulum"), hessian="bfgs")
 
 
+def test_a_refilled_batch_gives_each_instance_the_solution_it_gets_alone():
+    """``width``: instances join as others finish; each one's iterates, gains and iterations are those of a batch
+    of it alone (a non-finite guess never starts and takes no place)."""
+    task = get_task("double_pendulum")
+    xis, x0, X0, U0 = _naive_batch(task, 5, seed=4)
+    U0[2, 0] = np.nan
+    solver = DDPSolver(task)
+    filled = solver.solve_batch(x0, xis, X0, U0, width=2)
+    alone = [solver.solve_batch(x0[i:i + 1], xis[i:i + 1], X0[i:i + 1], U0[i:i + 1])[0] for i in range(5)]
+    assert sum(r.converged for r in filled) == 4 and "non-finite guess" in filled[2].status
+    for a, b in zip(alone, filled):
+        assert a.iterations == b.iterations and a.status == b.status
+        np.testing.assert_array_equal(a.X, b.X)
+        np.testing.assert_array_equal(a.K, b.K)
+    with pytest.raises(SdpError, match="width must be >= 1"):
+        solver.solve_batch(x0, xis, X0, U0, width=0)
+
+
 def test_non_convergence_is_reported():
     task = get_task("double_pendulum")
     xis, x0, X0, U0 = _naive_batch(task, 2)

@@ -214,9 +214,12 @@ class DDPSolver(PassesMixin, GainsMixin):
         return self.solve_batch(np.asarray(x0, float)[None], np.asarray(xi, float)[None],
                                 np.asarray(X_init, float)[None], np.asarray(U_init, float)[None], gains=gains)[0]
 
-    def solve_batch(self, x0, xi, X_init, U_init, *, gains: bool = True) -> list[SolveResult]:
+    def solve_batch(self, x0, xi, X_init, U_init, *, gains: bool = True, width: int | None = None) -> list[SolveResult]:
         """Solve N instances together: ``x0 (N, nx)``, ``xi (N, n_xi)``, guesses ``X_init (N, T+1, nx)``,
-        ``U_init (N, T, nu)``. Never raises on non-convergence."""
+        ``U_init (N, T, nu)``. ``width``: at most this many instances iterate at once, the next ones (in order)
+        joining as others finish, so that a straggler does not iterate alone while instances wait (None: all N
+        at once). An instance's result does not depend on ``width`` or on its batch. Never raises on
+        non-convergence."""
         task, T, ndx = self.task, self.T, self.ndx
         x0, xi = np.asarray(x0, float), np.asarray(xi, float)
         X, U = np.array(X_init, dtype=float), np.array(U_init, dtype=float)
@@ -229,9 +232,14 @@ class DDPSolver(PassesMixin, GainsMixin):
         reg = np.full(N, REG_INIT)
         iters = np.zeros(N, dtype=int)
         converged = np.zeros(N, dtype=bool)
-        active = np.all(np.isfinite(X), axis=(1, 2)) & np.all(np.isfinite(U), axis=(1, 2))
-        status = np.array(["" if a else "not converged: non-finite guess (solver not started)" for a in active],
+        startable = np.all(np.isfinite(X), axis=(1, 2)) & np.all(np.isfinite(U), axis=(1, 2))
+        status = np.array(["" if a else "not converged: non-finite guess (solver not started)" for a in startable],
                           dtype=object)
+        if width is not None and int(width) < 1:
+            raise SdpError(f"width must be >= 1, got {width}")
+        width = N if width is None else int(width)
+        waiting = list(np.flatnonzero(startable))        # instances not yet started, in order
+        active = np.zeros(N, dtype=bool)
         cost = np.full(N, np.nan)
         # the augmented Lagrangian's state per instance (ddp_al; empty without state constraints)
         lam, rho = np.zeros((N, T, task.n_h)), np.full(N, al.RHO_INIT)
@@ -247,7 +255,12 @@ class DDPSolver(PassesMixin, GainsMixin):
         polishing = np.zeros(N, dtype=bool)
         conv_iters = np.zeros(N, dtype=int)
         keep = {"X": X.copy(), "U": U.copy(), "cost": np.full(N, np.nan)}
-        for _ in range(self.max_iter + POLISH_MAX_ITER + 1):
+        # every instance leaves after at most max_iter + POLISH_MAX_ITER + 1 iterations
+        for _ in range((self.max_iter + POLISH_MAX_ITER + 1) * max(1, -(-len(waiting) // width))):
+            room = width - int(active.sum())
+            if room > 0 and waiting:
+                active[waiting[:room]] = True
+                del waiting[:room]
             idx = np.flatnonzero(active)
             if not len(idx):
                 break
