@@ -1,11 +1,13 @@
 """Our optimizer against crocoddyl on the same OCP instances, side by side in one process.
 
     # crocoddyl brings its own pinocchio: run this in a separate environment (docs/benchmarks.md)
-    python bench/crocoddyl_compare.py [--tasks pendulum,double_pendulum,ur5-fixed] [--n 10] [--repeats 3]
+    python bench/crocoddyl_compare.py [--tasks pendulum,double_pendulum,ur5-fixed,quadrotor-0] [--n 10] [--repeats 3]
 
 For every task crocoddyl can express (the pendulums and UR5: full actuation, box-bounded torques, no
-state constraints; the quadrotor's column constraints are not expressible in BoxFDDP), the OCP of
-``sdp_cli.tasks`` is rebuilt with crocoddyl's residual models on the *same* Pinocchio model object:
+state constraints; quadrotor-0, whose floor and ceiling are left out and checked on the solutions afterwards:
+BoxFDDP has no state constraints, so the quadrotors with columns are not expressible), the OCP of
+``sdp_cli.tasks`` is rebuilt with crocoddyl's residual models on the *same* Pinocchio model object (the
+quadrotor's: a copy with seven frames added, which changes no dynamics):
 
 - dynamics: ``DifferentialActionModelFreeFwdDynamics`` + ``IntegratedActionModelEuler`` (semi-implicit
   Euler, our ``Task.f_step``; checked: both roll the same controls out to the same states);
@@ -14,6 +16,12 @@ state constraints; the quadrotor's column constraints are not expressible in Box
   UR5 (results version 2): state (q 1e-4, v 0.3), control around gravity compensation (1e-4,
   ``ResidualModelControlGrav``) and frame translation (300), terminal frame translation (100), frame
   velocity in LOCAL_WORLD_ALIGNED (100) and state (1e-4);
+  quadrotor-0: ``ActuationModelFloatingBaseThrusters`` with four thrusters placed and turning as ``ALLOC``
+  says; our rotation residual ``r = 2 (qx, qy, qz)`` is not crocoddyl's log3, but six frames at ``+-e_i`` on
+  the base reproduce it exactly: ``sum_(+-, i) |p_frame - (p_goal +- e_i)|^2 = 6 |e|^2 + 4 |r|^2``
+  (``|R - I|_F^2 = 8 sin^2(theta/2)``, ``|q_vec|^2 = sin^2(theta/2)``), so each of the six gets a quarter of the
+  rotation weight and the base's translation weight drops by 1.5x the rotation weight; the velocity term a
+  ``ResidualModelState`` weighted on v only, the thrusts around hover a ``ResidualModelControl``;
 - control bounds: the task's ``u_lb``/``u_ub`` (BoxFDDP; BoxDDP is also timed).
 
 Each instance (collection seed 0, index i) is solved from the task's naive guess by our fatrop
@@ -36,16 +44,54 @@ from pathlib import Path
 import numpy as np
 
 
+def quadrotor_model(task):
+    """A copy of the quadrotor's model with a frame at the base (``sdp_base``) and six at ``+-e_i`` on it."""
+    import pinocchio as pin
+
+    model = pin.Model(task.model)
+    joint = model.getJointId("root_joint")
+    names = {}
+    for name, p in [("sdp_base", np.zeros(3))] + [(f"sdp_{sign}{i}", s * np.eye(3)[i])
+                                                   for i in range(3) for sign, s in (("p", 1.0), ("m", -1.0))]:
+        names[name] = (model.addFrame(pin.Frame(name, joint, 0, pin.SE3(np.eye(3), p), pin.FrameType.OP_FRAME)), p)
+    return model, names
+
+
+def quadrotor_actuation(state):
+    """Four thrusters at ``ALLOC``'s rotor positions, clockwise where ``ALLOC``'s yaw torque is positive."""
+    import crocoddyl
+    import pinocchio as pin
+
+    from sdp_cli.tasks.quadrotor import ALLOC, C_TAU
+
+    thrusters = []
+    for j in range(ALLOC.shape[1]):
+        p = np.array([-ALLOC[4, j], ALLOC[3, j], 0.0])      # torque p x (0, 0, f) = (p_y f, -p_x f, 0)
+        kind = crocoddyl.ThrusterType.CW if ALLOC[5, j] > 0 else crocoddyl.ThrusterType.CCW
+        thrusters.append(crocoddyl.Thruster(pin.SE3(np.eye(3), p), C_TAU, kind))
+    act = crocoddyl.ActuationModelFloatingBaseThrusters(state, thrusters)
+    assert np.allclose(act.Wthrust, ALLOC, atol=1e-15), "thruster placement does not reproduce ALLOC"
+    return act, thrusters
+
+
 def croc_problem(task, xi):
     import crocoddyl
     import pinocchio as pin
 
-    state = crocoddyl.StateMultibody(task.model)
-    act = crocoddyl.ActuationModelFull(state)
+    quadrotor = task.name.startswith("quadrotor")
+    if quadrotor:
+        if task.n_obstacles:
+            raise SystemExit(f"crocoddyl cannot express {task.name!r} here (column constraints)")
+        model, frames = quadrotor_model(task)
+        state = crocoddyl.StateMultibody(model)
+        act, thrusters = quadrotor_actuation(state)
+    else:
+        state = crocoddyl.StateMultibody(task.model)
+        act, thrusters = crocoddyl.ActuationModelFull(state), []
     nu = act.nu
     run, term = crocoddyl.CostModelSum(state, nu), crocoddyl.CostModelSum(state, nu)
 
-    keep = [state, act, run, term]   # crocoddyl's bindings do not keep argument objects alive: we do
+    keep = [state, act, run, term, thrusters]   # crocoddyl's bindings do not keep argument objects alive: we do
 
     def quad(residual, weights=None):
         a = (crocoddyl.ActivationModelQuad(residual.nr) if weights is None
@@ -72,6 +118,27 @@ def croc_problem(task, xi):
         term.addCost("twist", quad(crocoddyl.ResidualModelFrameVelocity(state, task.ee, pin.Motion.Zero(),
                                                                        pin.LOCAL_WORLD_ALIGNED, nu)), W_TWIST_T)
         term.addCost("x", quad(crocoddyl.ResidualModelState(state, x_ref, nu)), W_X_T)
+    elif quadrotor:
+        from sdp_cli.tasks.quadrotor import W_P, W_P_ARRIVE, W_ROT, W_TERMINAL, W_U, W_V, W_V_ARRIVE
+
+        goal = task.target(xi)
+        x_ref = np.concatenate([pin.neutral(state.pinocchio), np.zeros(state.nv)])
+
+        def state_costs(cost, scale, w_p_extra=0.0, w_v_extra=0.0):
+            base, _ = frames["sdp_base"]
+            cost.addCost("p", quad(crocoddyl.ResidualModelFrameTranslation(state, base, goal, nu)),
+                         scale * (W_P - 1.5 * W_ROT) + w_p_extra)
+            for name, (fid, p) in frames.items():
+                if name != "sdp_base":
+                    cost.addCost(name, quad(crocoddyl.ResidualModelFrameTranslation(state, fid, goal + p, nu)),
+                                 scale * W_ROT / 4)
+            cost.addCost("v", quad(crocoddyl.ResidualModelState(state, x_ref, nu), [0.0] * state.nv + [1.0] * state.nv),
+                         scale * W_V + w_v_extra)
+
+        state_costs(run, 1.0)
+        run.addCost("u", quad(crocoddyl.ResidualModelControl(state, np.asarray(task.u_hover, dtype=float))), W_U)
+        arrive = getattr(task, "arrival", False)
+        state_costs(term, W_TERMINAL, W_P_ARRIVE if arrive else 0.0, W_V_ARRIVE if arrive else 0.0)
     else:
         raise SystemExit(f"crocoddyl cannot express {task.name!r} here (state constraints)")
     dam_run = crocoddyl.DifferentialActionModelFreeFwdDynamics(state, act, run)
@@ -247,7 +314,8 @@ def main() -> None:
                 for _ in range(a.repeats):
                     X, U, ok, it, wall = solve_croc(task, xi, kind)
                     best = wall if best is None else min(best, wall)
-                viol = max(float(np.max(U - task.u_ub, initial=0)), float(np.max(task.u_lb - U, initial=0)))
+                viol = max(float(np.max(U - task.u_ub, initial=0)), float(np.max(task.u_lb - U, initial=0)),
+                           task.constraint_violation(X, U, xi))   # (the quadrotor's floor and ceiling, unmodelled)
                 rows.append({"task": name, "solver": f"crocoddyl {kind}", "i": i, "ok": ok and viol <= 1e-6,
                              "cost": task.cost(X, U, xi), "iterations": it, "time": best})
     df = pd.DataFrame(rows)

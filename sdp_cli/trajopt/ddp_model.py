@@ -101,9 +101,17 @@ class DenseCall:
     """A casadi ``Function`` called with numpy inputs, returning numpy outputs through its buffer (no copy
     through Python lists: ``np.asarray`` of a ``casadi.DM`` took 10x the evaluation itself on a quadrotor
     batch). Same shapes as ``np.asarray`` of the ``DM`` outputs (one array, or a tuple); bit-identical values
-    (the same evaluation). A function with a sparse input or output is called the usual way."""
+    (the same evaluation). Sparse outputs (structural zeros: the quadrotor's Jacobians and Hessians) are
+    densified by a wrapper function (the zeros written as 0.0, as ``np.asarray`` writes them); a function with a
+    sparse input is called the usual way."""
 
     def __init__(self, f):
+        self.densified = all(f.sparsity_in(i).is_dense() for i in range(f.n_in())) and \
+            not all(f.sparsity_out(i).is_dense() for i in range(f.n_out()))
+        if self.densified:
+            ins = [ca.MX.sym(f"in{i}", f.sparsity_in(i)) for i in range(f.n_in())]
+            outs = f.call(ins)
+            f = ca.Function(f.name() + "_dense", ins, [ca.densify(o) for o in outs])
         self.f = f
         self.dense = all(f.sparsity_in(i).is_dense() for i in range(f.n_in())) and \
             all(f.sparsity_out(i).is_dense() for i in range(f.n_out()))
@@ -128,7 +136,9 @@ class DenseCall:
             self.buf.set_res(j, memoryview(o))
             outs.append(o)
         self.run()
-        res = tuple(o.T for o in outs)
+        # a densified function's outputs in C order, as np.asarray of its DM outputs gave them (numpy's kernels
+        # round differently on other memory layouts: the solver's iterates would not stay bit-identical)
+        res = tuple(np.ascontiguousarray(o.T) if self.densified else o.T for o in outs)
         return res[0] if len(res) == 1 else res
 
 
