@@ -326,7 +326,8 @@ def test_quadrotor_gains_without_contact_match_finite_differences():
 
 def test_dense_call_returns_what_the_casadi_call_returns_bit_for_bit():
     """The zero-copy call of the DDP's mapped functions (sdp_cli.trajopt.ddp_model.DenseCall): same shapes and
-    bits as np.asarray of casadi's DM outputs, several outputs and one, and a sparse output through the fallback."""
+    bits and memory order as np.asarray of casadi's DM outputs, several outputs and one, a sparse output
+    densified, a sparse input through the fallback."""
     import casadi as ca
 
     from sdp_cli.trajopt.ddp_model import DenseCall
@@ -338,8 +339,13 @@ def test_dense_call_returns_what_the_casadi_call_returns_bit_for_bit():
     X, U = rng.normal(size=(3, 7)), rng.normal(size=(2, 7))
     want = [np.asarray(o) for o in F(X, U)]
     got = DenseCall(F)(X, U)
-    assert not DenseCall(F).dense                       # the Jacobian of sin(x) is diagonal: sparse
+    call = DenseCall(F)
+    assert call.densified and call.dense                # the Jacobian of sin(x) is diagonal: sparse, densified
     assert all(g.shape == w.shape and np.array_equal(g, w) for g, w in zip(got, want))
+    assert all(g.flags.c_contiguous for g in got)       # (numpy rounds differently on other layouts)
+    s = ca.SX.sym("s", ca.Sparsity.diag(3))             # a sparse input: casadi's own call
+    fs = ca.Function("fs", [s], [s @ ca.DM.ones(3, 1)])
+    assert not DenseCall(fs).dense and np.array_equal(DenseCall(fs)(np.eye(3)), np.asarray(fs(np.eye(3))))
     dense = ca.Function("g", [x, u], [ca.densify(ca.sin(x) * u[0])]).map(7, "serial")
     one = DenseCall(dense)
     assert one.dense
