@@ -517,8 +517,9 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     assert set(pd.read_csv(out / "all_runs.csv").method) == {"sdp"}
     assert set(pd.read_csv(out / "fig1_pendulum.csv").method) == {"sdp-K2", "sdp-K5", "sdp-K10"}
     from sdp_cli.report.figures.style import method_order   # legends list K in numeric order
+    from sdp_cli.report.rows import Variant
 
-    assert sorted(["sdp-K10", "sdp", "sdp-K2", "dp", "sdp-K5"], key=method_order) == [
+    assert sorted([Variant("sdp", k=10), "sdp", Variant("sdp", k=2), "dp", Variant("sdp", k=5)], key=method_order) == [
         "dp", "sdp", "sdp-K2", "sdp-K5", "sdp-K10"]
     k = pd.read_csv(out / "ablation_k_pendulum.csv")
     assert list(k[k.quantity == "policy cost"].sort_values("k_rollout")["mean"]) == [30.5, 16.0, 15.5]
@@ -527,5 +528,5 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
 
     from matplotlib.colors import to_rgb
 
-    assert len({COLORS.get(f"sdp-K{k}") for k in (2, 5, 10)}) == 3 and to_rgb(COLORS.get("sdp-K5")) == to_rgb("tab:red")
-    assert MARKERS.get("dp-K2") == "s" and COLORS.get("unknown") is None
+    assert len({COLORS.get(Variant("sdp", k=k)) for k in (2, 5, 10)}) == 3 and to_rgb(COLORS.get(Variant("sdp", k=5))) == to_rgb("tab:red")
+    assert MARKERS.get(Variant("dp", k=2)) == "s" and COLORS.get("unknown") is None

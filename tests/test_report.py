@@ -186,7 +186,7 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
 
     from sdp_cli.report.rows import loop_t_a as _loop_t_a
     from sdp_cli.report.figures.style import COLORS, MARKERS, method_order
-    from sdp_cli.report.rows import method_label
+    from sdp_cli.report.rows import Variant, method_label
     from sdp_cli.report.rows import method_variants
 
     rows = []
@@ -200,6 +200,7 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     df = pd.DataFrame(rows)
     v = method_variants(df)
     assert sorted(set(v[v.task == "ur5-rinit"].method)) == ["sdp-h32-ta16", "sdp-h64-ta63"]
+    assert {m.pair for m in v[v.task == "ur5-rinit"].method} == {(32, 16), (64, 63)}   # typed, not parsed
     assert set(v[v.task == "double_pendulum"].method) == {"sdp"}
     assert set(df.method) == {"sdp"}                          # the input (all_runs.csv) keeps the plain method
     # both loops keep their rows (grouped per run; per method and seed, the unfinished loop's T_a 63 is
@@ -209,18 +210,23 @@ def test_fig3_runs_are_drawn_apart_per_horizon_and_action_length():
     assert list(_loop_t_a(df[df.task == "double_pendulum"]).t_a) == [4, 4]
     # one hue per method, five distinct shades for Fig. 3's five pairs, the method's marker
     pairs = [(32, 16), (32, 31), (64, 16), (64, 31), (64, 63)]
-    shades = [mc.to_rgb(COLORS.get(f"sdp-h{h}-ta{t}")) for h, t in pairs]
-    assert len(set(shades)) == 5 and MARKERS.get("dp-h64-ta63") == "s"
+    shades = [mc.to_rgb(COLORS.get(Variant("sdp", pair=p))) for p in pairs]
+    assert len(set(shades)) == 5 and MARKERS.get(Variant("dp", pair=(64, 63))) == "s"
     red = np.array(mc.to_rgb("tab:red"))
     assert all(np.argmax(s) == np.argmax(red) for s in shades)
-    assert sorted([f"sdp-h{h}-ta{t}" for h, t in reversed(pairs)], key=method_order) == [
+    assert sorted([Variant("sdp", pair=p) for p in reversed(pairs)], key=method_order) == [
         f"sdp-h{h}-ta{t}" for h, t in pairs]
     # within one figure the pairs drawn spread from dark to light, whatever their values
-    few = ["sdp-h8-ta4", "sdp-h16-ta8"]
+    few = [Variant("sdp", pair=(8, 4)), Variant("sdp", pair=(16, 8))]
     dark, light = (np.array(mc.to_rgb(COLORS.get(m, among=few))) for m in few)
     assert dark.sum() < red.sum() < light.sum()
-    assert method_label("sdp-h64-ta63") == "SDP (T_h 64, T_a 63)" and method_label("pddp_s-K2") == "PDDP+S-K2"
-    assert method_label("pddp_s-h32-ta16") == "PDDP+S (T_h 32, T_a 16)"           # the paper's name, not PDDP_S
+    assert method_label(Variant("sdp", pair=(64, 63))) == "SDP (T_h 64, T_a 63)"
+    assert method_label(Variant("pddp_s", k=2)) == "PDDP+S-K2"
+    assert method_label(Variant("pddp_s", pair=(32, 16))) == "PDDP+S (T_h 32, T_a 16)"  # the paper's name, not PDDP_S
+    # the parts are typed, never parsed from the key: a method whose name looks like a variant stays itself
+    odd = Variant("chunk-K9", k=2)
+    assert odd == "chunk-K9-K2" and odd.method == "chunk-K9" and odd.k == 2 and method_label("chunk-K9") == "CHUNK-K9"
+    assert method_order(odd) == ("chunk-K9", (2,)) and Variant("dp", pair=(8, 4)).replace(pair=None) == "dp"
 
 
 def test_loop_figures_use_one_budget_per_method():
@@ -550,7 +556,7 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     from sdp_cli.report.figures.paper import fig1, fig2a, fig2b, table2c
     from sdp_cli.report.figures.style import COLORS
     from sdp_cli.report.rows import method_label
-    from sdp_cli.report.rows import family_of, method_variants, plain_method
+    from sdp_cli.report.rows import Variant, family_of, method_variants, plain_method
 
     rows = []
     for to, alone in (("ms", 31.5), ("ddp", 45.2)):
@@ -566,8 +572,11 @@ def test_runs_of_two_to_families_are_drawn_apart_with_their_own_to_alone(tmp_pat
     dp2 = d[d.task == "double_pendulum"]
     assert set(dp2.method) == {"sdp-to-ms", "sdp-to-ddp", "dp-to-ms", "dp-to-ddp"}
     assert set(d[d.task == "pendulum"].method) == {"sdp"}
-    assert family_of("sdp-to-ddp") == "ddp" and family_of("sdp") == "ms" and plain_method("dp-K5-to-ddp") == "dp"
-    assert method_label("sdp-to-ddp") == "SDP (TO box-FDDP)" and COLORS.get("sdp-to-ddp") != COLORS.get("sdp-to-ms")
+    assert {m.to for m in dp2.method} == {"ms", "ddp"}
+    assert family_of(Variant("sdp", to="ddp")) == "ddp" and family_of("sdp") == "ms"
+    assert plain_method(Variant("dp", k=5, to="ddp")) == "dp"
+    assert method_label(Variant("sdp", to="ddp")) == "SDP (TO box-FDDP)"
+    assert COLORS.get(Variant("sdp", to="ddp")) != COLORS.get(Variant("sdp", to="ms"))
     fig2a(dp2, "double_pendulum", tmp_path)
     tab = pd.read_csv(tmp_path / "fig2a_double_pendulum.csv")
     alone = tab[tab.curve == "TO alone"].set_index("method")["mean"].to_dict()

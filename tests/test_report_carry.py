@@ -11,7 +11,7 @@ from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 from sdp_cli.evaluate import write_evaluation
 from sdp_cli.report.carry import Carried
-from sdp_cli.report.rows import plain_method
+from sdp_cli.report.rows import Variant, plain_method
 from sdp_cli.report.make import make_report
 
 ROW = {"task": "pendulum", "method": "sdp", "n_traj": 3, "t_a": 8, "k_rollout": 5, "train_seed": 0, "epochs": 700,
@@ -147,7 +147,8 @@ def test_trajectory_figures_are_one_per_to_family_each_kept_on_its_own(tmp_path)
     all carried keeps its earlier file while the other is redrawn; a task of one family keeps one plain figure."""
     from sdp_cli.report.figures.traj import traj, traj_parts, trajectories
 
-    d = pd.DataFrame({"task": "p", "method": ["sdp-to-ddp", "dp-to-ms", "sdp-to-ms", "dp-to-ddp"],
+    d = pd.DataFrame({"task": "p", "method": [Variant("sdp", to="ddp"), Variant("dp", to="ms"), Variant("sdp", to="ms"),
+                                              Variant("dp", to="ddp")],
                       "run": ["s-ddp", "d", "s", "d-ddp"]})
     parts = traj_parts(d, "p")
     assert [(name, sorted(rows.method)) for name, rows in parts] == [
@@ -214,7 +215,8 @@ def test_a_carried_loop_keeps_its_rows_once_another_variant_of_its_method_is_dra
     (``dp-h64-ta63``) and those rows must stay, named like their run (they were dropped: fig2b_ur5-rinit
     vanished). Rows carried by run are renamed too, so one table never names a run two ways."""
     c = Carried(tmp_path, frozenset({"dp-h64", "sdp-h64"}), frozenset({("ur5", "dp-h32-ta16"), ("ur5", "sdp-h32-ta16")}))
-    drawn = pd.DataFrame({"method": ["dp-h64-ta63", "sdp-h64-ta63", "dp-h32-ta16"], "run": ["dp-h64", "sdp-h64", "dp-h32"]})
+    drawn = pd.DataFrame({"method": [Variant("dp", pair=(64, 63)), Variant("sdp", pair=(64, 63)), Variant("dp", pair=(32, 16))],
+                          "run": ["dp-h64", "sdp-h64", "dp-h32"]})
     pd.DataFrame({"method": ["dp", "dp", "sdp", "pddp"], "iterations": [1, 2, 3, 4]}).to_csv(tmp_path / "old.csv", index=False)
     rows = c.rows("old.csv", "ur5", drawn)
     assert list(rows.iterations) == [1, 2, 3]
@@ -224,12 +226,13 @@ def test_a_carried_loop_keeps_its_rows_once_another_variant_of_its_method_is_dra
     assert list(c.rows("new.csv", "ur5", drawn).method) == ["dp-h64-ta63", "sdp-h64-ta63"]
     # two carried variants of one method: the plain name could be either, so its run-less rows stay out
     two = Carried(tmp_path, frozenset({"dp-h64", "dp-h32"}))
-    both = pd.DataFrame({"method": ["dp-h64-ta63", "dp-h32-ta16"], "run": ["dp-h64", "dp-h32"]})
+    both = pd.DataFrame({"method": [Variant("dp", pair=(64, 63)), Variant("dp", pair=(32, 16))], "run": ["dp-h64", "dp-h32"]})
     assert two.rows("old.csv", "ur5", both).empty
     # nor is a plain name borrowed while the plain method itself has a fresh run
     fresh_plain = Carried(tmp_path, frozenset({"dp-h64"}), frozenset({("ur5", "dp")}))
     assert fresh_plain.rows("old.csv", "ur5", drawn[drawn.run == "dp-h64"]).empty
-    assert [plain_method(m) for m in ("sdp-K5-h32-ta16", "pddp+s-K2", "dp-h64-ta63", "sdp")] == ["sdp", "pddp+s", "dp", "sdp"]
+    assert [plain_method(m) for m in (Variant("sdp", k=5, pair=(32, 16)), Variant("pddp+s", k=2),
+                                      Variant("dp", pair=(64, 63)), "sdp")] == ["sdp", "pddp+s", "dp", "sdp"]
 
 
 def test_readme_tables_name_the_variant_each_run_is_drawn_as(tmp_path, monkeypatch):
@@ -303,7 +306,7 @@ def test_fig2b_names_each_methods_t_a_where_they_differ(tmp_path, monkeypatch):
     title, labels = texts()
     assert "T_a =" not in title and any("T_a 15,31" in s for s in labels), (title, labels)
     # a method named with its TO family ("SDP (TO fatrop)"): one bracket, not "(TO fatrop) (T_a 31, ...)"
-    fam = [dict(r, method=r["method"] + "-to-ms") for r in rows]
+    fam = [dict(r, method=Variant(r["method"], to="ms")) for r in rows]
     pd.read_csv(tmp_path / "fig2b_quadrotor-0.csv").assign(method=lambda t: t.method + "-to-ms").to_csv(
         tmp_path / "fig2b_quadrotor-0.csv", index=False)
     paper.fig2b(pd.DataFrame(fam), "quadrotor-0", tmp_path, carried)

@@ -26,7 +26,7 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli.errors import SdpError
-from sdp_cli.report.rows import plain_method
+from sdp_cli.report.rows import plain_method, typed_like
 from sdp_cli.report.runs import PATH_COLUMNS
 
 
@@ -70,8 +70,8 @@ class Carried:
         untagged = rows.run.isna()
         rows["run"] = rows.run.astype(object)      # (a column read with no value at all is not a string column)
         rows.loc[untagged, "run"] = rows.loc[untagged, "method"].map(only).astype(object)
-        # each carried run's rows under the name its method is drawn by now
-        rows["method"] = rows.run.map(drawn.groupby("run").method.first()).fillna(rows.method)
+        # each carried run's rows under the name its method is drawn by now (its typed variant)
+        rows["method"] = typed_like(rows.run.map(drawn.groupby("run").method.first()).fillna(rows.method), drawn.method)
         return rows
 
     def keeps_traj(self, rows: pd.DataFrame) -> bool:

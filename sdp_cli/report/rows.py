@@ -10,8 +10,6 @@ named in legends and the ledger as the paper names its methods (:func:`method_la
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pandas as pd
 
@@ -52,39 +50,90 @@ def loop_t_a(d: pd.DataFrame) -> pd.DataFrame:
     return pd.concat(keep) if keep else d
 
 
+class Variant(str):
+    """A drawn variant of a method: its key (``sdp-K2``, ``sdp-h32-ta16``, ``sdp-conv-track-to-ddp``) as a ``str``, so
+    that figures group, sort, colour, label and name files by it, and its parts as typed fields, set by
+    :func:`method_variants` from ``all_runs.csv``'s columns and read by the helpers below (never parsed back from
+    the key): ``method`` (the plain method), ``k`` (the rollout's diffusion steps, the K ablation), ``pair``
+    (``(T_h, T_a)``, Fig. 3), ``conversion`` (of predicted chunks, :mod:`sdp_cli.tasks.conversion`) and ``to``
+    (the loop's TO family). A plain string is the plain method (:func:`as_variant`)."""
+
+    method: str
+    k: int | None
+    pair: tuple[int, int] | None
+    conversion: str | None
+    to: str | None
+
+    def __new__(cls, method: str, k: int | None = None, pair: tuple[int, int] | None = None,
+                conversion: str | None = None, to: str | None = None):
+        key = (str(method) + (f"-K{k}" if k is not None else "") + (f"-h{pair[0]}-ta{pair[1]}" if pair else "")
+               + (f"-conv-{CONVERSION_TAGS.get(conversion, conversion)}" if conversion else "")
+               + (f"-to-{to}" if to else ""))
+        self = super().__new__(cls, key)
+        self.method, self.k, self.conversion, self.to = str(method), k, conversion, to
+        self.pair = tuple(pair) if pair else None
+        return self
+
+    def __reduce__(self):
+        return Variant, (self.method, self.k, self.pair, self.conversion, self.to)
+
+    def replace(self, **parts) -> "Variant":
+        """This variant with some parts changed (``v.replace(to=None)``: the variant without its TO family)."""
+        now = {"k": self.k, "pair": self.pair, "conversion": self.conversion, "to": self.to}
+        return Variant(self.method, **{**now, **parts})
+
+
+def as_variant(method) -> Variant:
+    """``method`` as a :class:`Variant`: itself, or a plain method (no variant parts) for a plain string."""
+    return method if isinstance(method, Variant) else Variant(str(method))
+
+
+def typed_like(methods: pd.Series, drawn) -> pd.Series:
+    """Keys read back from an earlier report's CSV (plain strings: ``sdp-to-ddp``) as the :class:`Variant` drawn
+    now under the same key (``drawn``: the methods of the rows drawn now); a key not drawn now stays a plain
+    method."""
+    now = {str(v): v for v in drawn if isinstance(v, Variant)}
+    return methods.map(lambda m: now.get(str(m), m))
+
+
 def method_variants(df: pd.DataFrame) -> pd.DataFrame:
     """For the figures: where one task has runs of a method that differ in how the policy acts, the
     variants are drawn and tabulated apart instead of averaged together (all_runs.csv keeps the plain
-    method): several diffusion step counts (the K ablation) make ``<method>-K<k>``; several (T_h, T_a)
-    pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its first iteration) make
-    ``<method>-h<T_h>-ta<T_a>``; several TO families (``to``: collection, refinement and TO alone by ``ms`` or
-    ``ddp``) make ``<method>-to-<family>``, so that TO alone and refined are drawn per family (rows evaluated
-    before the column existed are ``ms``); several conversions of predicted chunks (``conversion``,
-    :mod:`sdp_cli.tasks.conversion`) make ``<method>-conv-<tag>`` (:data:`CONVERSION_TAGS`; chunked rows
-    evaluated before the column existed used ``inverse-dynamics``), before the TO family's suffix."""
+    method and the typed columns this reads): ``method`` becomes each row's :class:`Variant`, whose parts are
+    set where they vary within the task: several diffusion step counts (``k_rollout``, the K ablation:
+    ``<method>-K<k>``); several (T_h, T_a) pairs (Fig. 3; T_a the run's loop T_a, the one evaluated at its
+    first iteration: ``<method>-h<T_h>-ta<T_a>``); several conversions of predicted chunks (``conversion``:
+    ``<method>-conv-<tag>``, :data:`CONVERSION_TAGS`; chunked rows evaluated before the column existed used
+    ``inverse-dynamics``); several TO families (``to``: collection, refinement and TO alone by ``ms`` or ``ddp``,
+    so that TO alone and refined are drawn per family; rows evaluated before the column existed are ``ms``:
+    ``<method>-to-<family>``)."""
     if df.empty:
         return df
     df = df.copy()
+    parts = pd.DataFrame({"k": None, "pair": None, "conversion": None, "to": None}, index=df.index, dtype=object)
     if "k_rollout" in df:
         ks = df.groupby(["task", "method"]).k_rollout.transform("nunique")
         mixed = (ks > 1) & df.k_rollout.notna()
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-K" + df.loc[mixed, "k_rollout"].astype(int).astype(str)
+        parts.loc[mixed, "k"] = df.loc[mixed, "k_rollout"].astype(int)
     if {"horizon", "t_a", "run", "iteration"} <= set(df.columns):
         run_t_a = df.run.map(first_rows(df).groupby("run").t_a.min())
         pair = df.horizon.astype("Int64").astype(str) + "-ta" + run_t_a.astype("Int64").astype(str)
-        mixed = (pair.groupby([df.task, df.method]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-h" + pair[mixed]
+        with_k = df.method.astype(str) + parts.k.map(lambda k: "" if k is None else f"-K{k}")   # (per K variant)
+        mixed = (pair.groupby([df.task, with_k]).transform("nunique") > 1) & df.horizon.notna() & run_t_a.notna()
+        parts.loc[mixed, "pair"] = pd.Series([(int(h), int(t)) for h, t in zip(df.horizon[mixed], run_t_a[mixed])],
+                                             index=df.index[mixed], dtype=object)
     if "conversion" in df:
         conv = df["conversion"].astype(object)
         chunked = df["k_rollout"].notna() if "k_rollout" in df else conv.notna()
         conv = conv.where(conv.notna() | ~chunked, "inverse-dynamics")
         mixed = (conv.groupby(df.task).transform("nunique") > 1) & conv.notna()
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-conv-" + conv[mixed].map(
-            lambda c: CONVERSION_TAGS.get(c, c))
+        parts.loc[mixed, "conversion"] = conv[mixed]
     if "to" in df:
         fam = to_family(df)
         mixed = fam.groupby(df.task).transform("nunique") > 1
-        df.loc[mixed, "method"] = df.loc[mixed, "method"] + "-to-" + fam[mixed]
+        parts.loc[mixed, "to"] = fam[mixed]
+    df["method"] = [Variant(m, k, p, c, t) for m, k, p, c, t in
+                    zip(df.method, parts.k, parts.pair, parts.conversion, parts.to)]
     return df
 
 
@@ -93,10 +142,10 @@ CONVERSION_TAGS = {"inverse-dynamics": "invdyn", "tracking": "track"}
 CONVERSION_NAMES = {"invdyn": "inverse dynamics", "track": "tracking"}
 
 
-def split_conversion(method: str) -> tuple[str, str | None]:
+def split_conversion(method) -> tuple[Variant, str | None]:
     """``(variant without its conversion, conversion tag)``: ``sdp-conv-track`` -> ``("sdp", "track")``."""
-    m = re.fullmatch(r"(.+)-conv-(\w+)", str(method))
-    return (m[1], m[2]) if m else (str(method), None)
+    v = as_variant(method)
+    return v.replace(conversion=None), (CONVERSION_TAGS.get(v.conversion, v.conversion) if v.conversion else None)
 
 
 #: how reports name a TO family (``to`` of the evaluations); ``ms`` is the main one
@@ -130,46 +179,45 @@ def newest_version_mask(df: pd.DataFrame) -> pd.Series:
     return ~(v < newest)
 
 
-def split_family(method: str) -> tuple[str, str | None]:
+def split_family(method) -> tuple[Variant, str | None]:
     """``(variant without its TO family, family)`` of a drawn variant: ``sdp-to-ddp`` -> ``("sdp", "ddp")``;
-    no family suffix: ``(method, None)``."""
-    m = re.fullmatch(r"(.+)-to-(\w+)", str(method))
-    return (m[1], m[2]) if m else (str(method), None)
+    no family part: ``(method, None)``."""
+    v = as_variant(method)
+    return v.replace(to=None), v.to
 
 
-def family_of(method: str) -> str:
-    """The TO family of a drawn variant (``sdp-to-ddp`` -> ``ddp``; no suffix: ``ms``)."""
-    return split_family(method)[1] or DEFAULT_TO
+def family_of(method) -> str:
+    """The TO family of a drawn variant (``sdp-to-ddp`` -> ``ddp``; none: ``ms``)."""
+    return as_variant(method).to or DEFAULT_TO
 
 
-def plain_method(method: str) -> str:
-    """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``; the suffixes of
-    :func:`method_variants`)."""
-    return re.sub(r"(-K\d+)?(-h\d+-ta\d+)?$", "", split_conversion(split_family(method)[0])[0])
+def plain_method(method) -> str:
+    """The method a drawn variant is of (``sdp-K5-h32-ta16`` -> ``sdp``)."""
+    return as_variant(method).method
 
 
-def ta_pair(method: str) -> tuple[int, int] | None:
-    """(T_h, T_a) of a variant ``<method>-h<T_h>-ta<T_a>``, else None."""
-    m = re.fullmatch(r"h(\d+)-ta(\d+)", split_conversion(split_family(method)[0])[0].partition("-")[2])
-    return (int(m[1]), int(m[2])) if m else None
+def ta_pair(method) -> tuple[int, int] | None:
+    """(T_h, T_a) of a variant drawn per pair (``<method>-h<T_h>-ta<T_a>``, with no K part), else None."""
+    v = as_variant(method)
+    return v.pair if v.k is None else None
 
 
 PAPER_NAMES = {"pddp_s": "PDDP+S"}    # the paper's name where upper-casing ours does not give it
 
 
-def method_label(method: str) -> str:
+def method_label(method) -> str:
     """Legend name, the paper's: ``SDP``, ``PDDP+S``, ``SDP-K2``, ``SDP (T_h 32, T_a 16)``, ``SDP (TO box-FDDP)``
-    (the loop's TO family by its solver, :data:`TO_FAMILIES`)."""
-    base, family = split_family(method)
-    if family:
-        return f"{method_label(base)} (TO {TO_FAMILIES.get(family, family)})"
-    base, conv = split_conversion(base)
-    if conv:
-        return f"{method_label(base)} ({CONVERSION_NAMES.get(conv, conv)})"
-    base, sep, rest = str(method).partition("-")
-    name = PAPER_NAMES.get(base, base.upper())
-    pair = ta_pair(method)
-    return f"{name} (T_h {pair[0]}, T_a {pair[1]})" if pair else name + sep + rest
+    (the loop's TO family by its solver, :data:`TO_FAMILIES`), ``SDP (tracking)``."""
+    v = as_variant(method)
+    if v.to:
+        return f"{method_label(v.replace(to=None))} (TO {TO_FAMILIES.get(v.to, v.to)})"
+    if v.conversion:
+        tag = CONVERSION_TAGS.get(v.conversion, v.conversion)
+        return f"{method_label(v.replace(conversion=None))} ({CONVERSION_NAMES.get(tag, tag)})"
+    name = PAPER_NAMES.get(v.method, v.method.upper())
+    if v.pair:
+        return f"{name} (T_h {v.pair[0]}, T_a {v.pair[1]})"
+    return name + (f"-K{v.k}" if v.k is not None else "")
 
 
 def largest_budget(df: pd.DataFrame) -> pd.DataFrame:

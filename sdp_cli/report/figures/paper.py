@@ -13,7 +13,7 @@ import pandas as pd
 
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci, method_label
+from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, mean_ci, method_label, typed_like
 from sdp_cli.report.figures.style import (COLORS, CURVE_STYLES, MARKERS, by_method, log_ticks, method_order,
                                   pyplot, save_csv, save_fig, save_md)
 
@@ -280,6 +280,8 @@ def fig2b(df: pd.DataFrame, task: str, out: Path, carried=None) -> list[Path]:
             rows += [{"solver": solver, "method": r.method, "guess": "naive", "iterations": int(v), "run": r.run}
                      for v in bi[bi >= 0]]
     old = carried.rows(f"fig2b_{task}.csv", task, last) if carried else pd.DataFrame()
+    if not old.empty:
+        old["method"] = typed_like(old.method, last.method)      # (their variants' parts, as drawn now)
     if not rows and old.empty:
         return []
     tab = pd.concat([pd.DataFrame(rows), old], ignore_index=True)

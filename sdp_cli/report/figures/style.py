@@ -1,11 +1,10 @@
 """How the report's figures and tables look and are written: method colours, markers and legend
-order (variants ``<method>-K<k>`` and ``<method>-h<T_h>-ta<T_a>`` included), readable log ticks, the Agg
+order (variants ``<method>-K<k>`` and ``<method>-h<T_h>-ta<T_a>`` included, read from their typed parts), readable log ticks, the Agg
 backend, and atomic writes of PNG, CSV and markdown files."""
 
 from __future__ import annotations
 
 import io
-import re
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import pandas as pd
 
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.report.rows import split_family, ta_pair
+from sdp_cli.report.rows import as_variant, split_family, ta_pair
 
 class _Shades(dict):
     """Method -> colour (or marker); a variant ``<method>-K<k>`` or ``<method>-h<T_h>-ta<T_a>``
@@ -32,17 +31,18 @@ class _Shades(dict):
             import matplotlib.colors as mc
 
             return tuple(c + (1 - c) * 0.45 for c in mc.to_rgb(value))
-        base, _, variant = str(key).partition("-")
-        k, pair = re.fullmatch(r"K(\d+)", variant), ta_pair(key)
-        if base not in self or not (k or pair):
+        v = as_variant(key)
+        k = v.k if v.pair is None and v.conversion is None else None    # (a K variant alone is shaded by K)
+        pair = ta_pair(v)
+        if v.method not in self or not (k is not None or pair):
             return default
-        value = self[base]
+        value = self[v.method]
         if not self.shade:
             return value
         import matplotlib.colors as mc
 
-        if k:    # darker for K < 5, lighter for K > 5
-            mix = -0.7 * (5 - int(k[1])) / 5 if int(k[1]) < 5 else min(0.7, (int(k[1]) - 5) / 10)
+        if k is not None:    # darker for K < 5, lighter for K > 5
+            mix = -0.7 * (5 - int(k)) / 5 if int(k) < 5 else min(0.7, (int(k) - 5) / 10)
         else:
             pairs = sorted({p for p in map(ta_pair, among) if p} | {pair})
             mix = (-0.55 + 1.1 * pairs.index(pair) / (len(pairs) - 1) if len(pairs) > 1
@@ -62,11 +62,11 @@ MARKERS = _Shades({"sdp": "o", "dp": "s", "pddp": "^", "pddp_s": "v"}, False)
 CURVE_STYLES = {"policy": "-", "refined": "--", "ArgminCost": ":"}
 
 
-def method_order(method: str) -> tuple:
-    """Sort key of a method or variant, numbers numerically: ``sdp-K2`` before ``sdp-K10``, ``sdp-h32-ta16``
-    before ``sdp-h64-ta16`` before ``sdp-h64-ta63``."""
-    base, _, variant = str(method).partition("-")
-    return base, tuple(int(n) for n in re.findall(r"\d+", variant))
+def method_order(method) -> tuple:
+    """Sort key of a method or variant (:class:`~sdp_cli.report.rows.Variant`), numbers numerically: ``sdp-K2``
+    before ``sdp-K10``, ``sdp-h32-ta16`` before ``sdp-h64-ta16`` before ``sdp-h64-ta63``."""
+    v = as_variant(method)
+    return v.method, (() if v.k is None else (int(v.k),)) + (tuple(v.pair) if v.pair else ())
 
 
 def by_method(tab: pd.DataFrame, then: list[str]) -> pd.DataFrame:
