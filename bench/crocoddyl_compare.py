@@ -27,7 +27,8 @@ quadrotor's: a copy with seven frames added, which changes no dynamics):
 Each instance (collection seed 0, index i) is solved from the task's naive guess by our fatrop
 multiple shooting (``get_solver``, tolerance 1e-6, gains off) and by crocoddyl (max 1000 iterations,
 threshold 1e-9 on the stopping criterion); the cost of each solution is evaluated by *our* cost function
-(so both are measured by the same yardstick), and the best of ``--repeats`` wall times is kept.
+(so both are measured by the same yardstick), and the best of ``--repeats`` times is kept: process CPU time
+(one thread on both sides), so that the ratios hold on a loaded machine; fatrop's is its own ``solve_time``.
 Prints one row per task and solver and the time ratio ours / crocoddyl.
 
 ``--exchange IN OUT`` is bench/aligator_compare.py's crocoddyl side (:func:`exchange`).
@@ -183,9 +184,9 @@ def solve_croc(task, xi, kind: str, max_iter: int = 1000):
     _KEEP.append(solver)
     solver.th_stop = 1e-9
     X0, U0 = task.naive_guess(xi)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     ok = solver.solve(list(X0), list(U0), max_iter, False)
-    wall = time.perf_counter() - t0
+    wall = time.process_time() - t0
     return np.array(solver.xs), np.array(solver.us), bool(ok), int(solver.iter), wall
 
 
@@ -234,7 +235,7 @@ def exchange(inp: str, out: str) -> None:
 
 def ddp_rows(task, name, n, repeats, batch, DDPSolver, sample_xi) -> list[dict]:
     """Our box-FDDP (sdp_cli/trajopt/ddp.py, its default Hessian model) on the same instances: in batches of
-    ``batch`` (the pipeline's; time per instance = the batch's wall time / its size) and each instance alone
+    ``batch`` (the pipeline's; time per instance = the batch's CPU time / its size) and each instance alone
     (best of ``repeats``); gains off, as crocoddyl's solve has none."""
     solver = DDPSolver(task)
     xis = np.array([sample_xi(task, 0, i) for i in range(n)])
@@ -249,9 +250,9 @@ def ddp_rows(task, name, n, repeats, batch, DDPSolver, sample_xi) -> list[dict]:
         sl = slice(j, j + batch)
         best, res = None, None
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             res = solver.solve_batch(x0[sl], xis[sl], X0[sl], U0[sl], gains=False)
-            wall = time.perf_counter() - t0
+            wall = time.process_time() - t0
             best = wall if best is None else min(best, wall)
         for k, r in enumerate(res):
             rows.append({"task": name, "solver": f"ours (box-FDDP, batch of {batch})", "i": j + k, "ok": r.converged,
@@ -260,9 +261,9 @@ def ddp_rows(task, name, n, repeats, batch, DDPSolver, sample_xi) -> list[dict]:
     for i in range(n):
         best = None
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             r = solver.solve_from(x0[i], xis[i], X0[i], U0[i], gains=False)
-            wall = time.perf_counter() - t0
+            wall = time.process_time() - t0
             best = wall if best is None else min(best, wall)
         rows.append({"task": name, "solver": "ours (box-FDDP, alone)", "i": i, "ok": r.converged,
                      "cost": task.cost(r.X, r.U, xis[i]), "iterations": r.iterations, "time": best})
