@@ -1,7 +1,7 @@
 """Box-FDDP (sdp_cli/trajopt/ddp.py) batched: time per instance against the batch size N and the horizon T,
 where the time goes, and the goal (double pendulum <= 20 ms amortized per instance at N = 50 on 1 thread).
 
-    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200] [--refill 16] [--hessians]
+    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200] [--refill 16] [--hessians] [--dense-call]
 
 Instances: collection seed 0, indices 0..N-1, from the naive guess; the compiled functions are built (and
 cached) before timing. Prints per (T, N): converged, mean / max iterations, batch wall time, amortized ms per
@@ -11,7 +11,10 @@ starts the next instance as one finishes (``solve_batch(width=W)``), in process 
 ``--repeats``, with a check that every instance's solution is the same both ways. With ``--hessians``: the
 N = max instances from the naive guess under the iterations' Hessian model before issue "Our box-FDDP within 2x"
 (``hessian="exact"``) and the default (``"psd"``): converged, iterations, CPU time, and how often the optimum
-changed (relative cost difference > 1e-6), with the cost distribution of each.
+changed (relative cost difference > 1e-6), with the cost distribution of each. With ``--dense-call``: the
+N = max instances with the compiled maps called as casadi calls whose outputs go through ``np.asarray`` (how
+maps with structurally sparse outputs were called before they were densified) against the buffer calls
+(``ddp_model.DenseCall``), CPU time, round-robin over ``--repeats``, with a check of identical solutions.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ def main() -> None:
     ap.add_argument("--refill", type=int, default=0, help="compare batches of this width with a refilled batch")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--hessians", action="store_true", help="compare the exact and the PSD Hessian models")
+    ap.add_argument("--dense-call", action="store_true", help="compare casadi calls through np.asarray with buffers")
     a = ap.parse_args()
     import torch
 
@@ -84,6 +88,39 @@ def main() -> None:
         refill(solver, args, a.refill, a.repeats)
     if a.hessians:
         hessians(task, args)
+    if a.dense_call:
+        dense_call(task, args, a.repeats)
+
+
+class _AsArrayCall:
+    """A mapped casadi function called the usual way, its outputs through ``np.asarray`` (C order)."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def __call__(self, *args):
+        out = self.f(*args)
+        return tuple(np.asarray(o) for o in out) if isinstance(out, (tuple, list)) else np.asarray(out)
+
+
+def dense_call(task, args, repeats: int) -> None:
+    """The solve with every compiled map called through ``np.asarray`` against through its buffer."""
+    solvers = {"np.asarray": DDPSolver(task), "buffer": DDPSolver(task)}
+    slow = solvers["np.asarray"]
+    slow._map = lambda name, n: slow._maps.setdefault((name, n), _AsArrayCall(slow._f[name].map(n, "serial")))
+    times = {k: [] for k in solvers}
+    res = {}
+    for s in solvers.values():
+        s.solve_batch(*args, gains=False)                # build the maps
+    for _ in range(repeats):
+        for k, s in solvers.items():
+            t0 = time.process_time()
+            res[k] = s.solve_batch(*args, gains=False)
+            times[k].append(time.process_time() - t0)
+    same = all(np.array_equal(p.X, q.X) and p.iterations == q.iterations for p, q in zip(res["np.asarray"], res["buffer"]))
+    a, b = (1000 * np.median(times[k]) / len(args[0]) for k in ("np.asarray", "buffer"))
+    print(f"\ncasadi outputs (N = {len(args[0])}, median of {repeats}, CPU ms per instance): through np.asarray {a:.1f}, "
+          f"through the buffer {b:.1f}, ratio {a / b:.2f}x; same solutions: {same}")
 
 
 def hessians(task, args) -> None:
