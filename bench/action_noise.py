@@ -18,7 +18,7 @@ the error a learner is left with. This bench tells the two apart on fig1's runs 
   on the true states (every ``--stride``-th start, rows after the history), in the same units; and their own
   rollout on those training instances.
 
-Both are rolled out with the rollout's conventions (:func:`sdp_cli.rollout.rollout_policy`, default T_a), under
+Both are rolled out with the rollout's conventions (:func:`sdp_cli.algorithm.rollout.rollout_policy`, default T_a), under
 each conversion of ``--conversions`` (:mod:`sdp_cli.tasks.conversion`; a ``conversion`` column).
 
     python bench/action_noise.py --runs /work/sweeps/fig1 --tasks ur5-fixed,quadrotor-0 --n-traj 8 --seeds 0,1,2
@@ -55,7 +55,7 @@ def replay(policy, arrays: dict, to: np.ndarray, conversion: str | None = None) 
     ``(N,)``), final distance."""
     import torch
 
-    from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
 
     xis = arrays["xi"]
     cfg = RolloutConfig(n=len(xis), seed=0, conversion=conversion).validate(policy)
@@ -70,7 +70,7 @@ def fit_error(policy, arrays: dict, chunks: np.ndarray, scale: np.ndarray, strid
     its row-to-row part ``e[r+1] - e[r]`` (what white noise is: an error that changes from row to row)."""
     import torch
 
-    from sdp_cli.rollout import instance_generators
+    from sdp_cli.algorithm.rollout import instance_generators
 
     N = len(arrays["xi"])
     chunks = chunks.reshape((N, -1) + chunks.shape[1:])                                 # (N, S, T_h, A)

@@ -12,7 +12,7 @@ crocoddyl 3.2.1 through ``bench/crocoddyl_compare.py --exchange``. Instances and
   controls uniform in the bounds) aligator's total cost and every ``x_{t+1} = f(x_t, u_t)`` against
   ``task.cost`` and ``task.step``; a task whose errors exceed ``EXACT`` (1e-10, relative for the cost) is left
   out of the solves with that reason.
-- **Instances**: the evaluation set of fig2 (:func:`sdp_cli.rollout.evaluation_xis`, test seed 0), the first
+- **Instances**: the evaluation set of fig2 (:func:`sdp_cli.algorithm.rollout.evaluation_xis`, test seed 0), the first
   ``--n``, from the task's naive guess.
 - **ProxDDP grid, fixed before any run**: tol {1e-3, 1e-4} x mu_init {1e-2, 1e-4} x rollout {linear,
   nonlinear}, max_iters 1000; Gauss-Newton Hessians, aligator's default step acceptance (non-monotone line
@@ -242,7 +242,7 @@ def main() -> None:
     import pandas as pd
 
     from sdp_cli.data.artifacts import code_revision
-    from sdp_cli.rollout import evaluation_xis
+    from sdp_cli.algorithm.rollout import evaluation_xis
     from sdp_cli.tasks import get_task
 
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.collect import CollectConfig, collect, warm_solver
-from sdp_cli.executor import make_executor
+from sdp_cli.algorithm.collect import CollectConfig, collect, warm_solver
+from sdp_cli.execution.executor import make_executor
 
 
 def _run(cfg: CollectConfig, out: Path, **kw) -> tuple[float, int, dict]:

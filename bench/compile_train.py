@@ -6,7 +6,7 @@ compile's cost cold and warm and the break-even in steps.
 
 A config is ``<task>-<method>-<B>[-r<R>]``: ``ur5`` (fig1's UR5, T_h 32), ``dp2`` (fig2's double pendulum,
 T_h 16), R runs as one stack (``sdp pipeline --run``). Per config, one subprocess with an empty inductor cache
-builds the trainer's own step (``sdp_cli.estimate.step_seconds`` / ``stacked_step_seconds``: draws, loss, backward,
+builds the trainer's own step (``sdp_cli.experiments.estimate.step_seconds`` / ``stacked_step_seconds``: draws, loss, backward,
 clipping, AdamW, EMA) eager and compiled, times the compiled one's first step (the cold compile, process CPU time,
 inductor's worker threads included), then times both round-robin in CPU time of the calling thread (one torch
 thread), and prints the medians; a second subprocess on the now warm cache times the compile again (warm). The
@@ -30,7 +30,7 @@ SHAPES = {"ur5": ("ur5-fixed", 32), "dp2": ("double_pendulum", 16)}
 
 def _step(task, method, T_h, B, R, compile_on):
     """The trainer's step of this config (its first call not yet made)."""
-    import sdp_cli.estimate as est
+    import sdp_cli.experiments.estimate as est
     from sdp_cli.policy.config import TrainConfig
 
     steps = []

@@ -38,7 +38,7 @@ def main() -> None:
     torch.set_num_threads(1)
     from sdp_cli.data.artifacts import code_revision, load_npz
     from sdp_cli.policy import load_policy
-    from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, evaluate_rollouts, instance_generators, rollout_policy
 
     rows, sweep = [], []
     for run in sorted(p for p in a.runs.iterdir() if (p / "summary.csv").is_file()):

@@ -3,7 +3,7 @@ checkpoints, on the test set and on their own training instances. Writes results
 
 The runs are fig1's (`sdp pipeline fig1 --run --only quadrotor-0-sdp-n8-s0,...`: one iteration, 2e4 epochs,
 T_h 32, the default T_a 31), so the re-run of Fig. 1 reuses them. Each final policy (EMA weights) is rolled out
-with the rollout's conventions (sdp_cli.rollout.rollout_policy, instance generators of seed 0) under
+with the rollout's conventions (sdp_cli.algorithm.rollout.rollout_policy, instance generators of seed 0) under
 `inverse-dynamics` and `tracking` (sdp_cli/tasks/conversion.py): on the 50 test instances of test seed 0 (the
 loop's own evaluation set; its inverse-dynamics row must equal the run's eval.csv) and on the run's own training
 instances, where the memorizer reaches TO's cost.
@@ -41,7 +41,7 @@ def main() -> None:
     torch.set_num_threads(1)
     from sdp_cli.data.artifacts import code_revision, load_npz
     from sdp_cli.policy import load_policy
-    from sdp_cli.rollout import (RolloutConfig, evaluate_rollouts, evaluation_xis, instance_generators,
+    from sdp_cli.algorithm.rollout import (RolloutConfig, evaluate_rollouts, evaluation_xis, instance_generators,
                                  rollout_policy)
     from sdp_cli.tasks.conversion import CONVERSIONS
 

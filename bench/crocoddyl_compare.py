@@ -286,7 +286,7 @@ def main() -> None:
     import pandas as pd
     import pinocchio as pin
 
-    from sdp_cli.collect import sample_xi
+    from sdp_cli.algorithm.collect import sample_xi
     from sdp_cli.tasks import get_task
     from sdp_cli.trajopt import get_solver
 

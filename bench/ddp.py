@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from sdp_cli.solve_jobs import sample_xi
+from sdp_cli.algorithm.solve_jobs import sample_xi
 from sdp_cli.tasks import get_task
 from sdp_cli.trajopt.ddp import DDPSolver
 

@@ -7,7 +7,7 @@ n_obs 24, n_xi 6, ndx 12, T_h 32, the default U-Net): batch gathering, loss (the
 backward, gradient clipping, AdamW (fused), the LR schedule, EMA (diffusers' ``EMAModel``, foreach) and reading the
 metrics row; medians of 50 steps after 10 warm-up steps, printed in ms.
 
-With ``R``: instead, one step of a stack of R such runs (``sdp_cli.train_step.Stack``, as ``sdp pipeline --run``
+With ``R``: instead, one step of a stack of R such runs (``sdp_cli.training.train_step.Stack``, as ``sdp pipeline --run``
 trains them, on ``ur5-fixed``'s shapes), 10 steps under torch's profiler after 3 warm-up steps; prints the share
 of the CPU time of the ops that take most of it.
 """
@@ -22,7 +22,7 @@ import torch
 from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
 
-from sdp_cli.estimate import _synthetic_batch
+from sdp_cli.experiments.estimate import _synthetic_batch
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.registry import make_policy
 
@@ -30,7 +30,7 @@ from sdp_cli.policy.registry import make_policy
 def stacked(method: str, B: int, R: int) -> None:
     from torch.profiler import ProfilerActivity, profile
 
-    import sdp_cli.estimate as est
+    import sdp_cli.experiments.estimate as est
 
     steps = []
     real, est._median_seconds = est._median_seconds, lambda step, *_: steps.append(step) or 1.0

@@ -22,8 +22,8 @@ import numpy as np
 
 def outcome_line(d: dict, n: int) -> str:
     """How often the policy guess won: a tie (both solves at the same cost, which ArgminCost keeps from the
-    policy) is not a win (:func:`sdp_cli.argmin.policy_outcomes`)."""
-    from sdp_cli.argmin import policy_outcomes
+    policy) is not a win (:func:`sdp_cli.algorithm.argmin.policy_outcomes`)."""
+    from sdp_cli.algorithm.argmin import policy_outcomes
 
     wins, ties = policy_outcomes(d["inst_winner"], d["inst_pol_cost"], d["inst_base_cost"], d["inst_base_converged"])
     return f"policy guess won {wins}/{n} (cheaper than TO alone, or TO alone failed), tied {ties}"
@@ -42,8 +42,8 @@ def main() -> None:
 
     torch.set_num_threads(1)  # the U-Net is tiny: one thread is fastest (and the solves are serial)
     from sdp_cli.data.artifacts import load_npz, load_timing
-    from sdp_cli.refine import refine
-    from sdp_cli.rollout import RolloutConfig, rollout
+    from sdp_cli.algorithm.refine import refine
+    from sdp_cli.algorithm.rollout import RolloutConfig, rollout
     from sdp_cli.trajopt import build_count
 
     with tempfile.TemporaryDirectory() as tmp:

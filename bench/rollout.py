@@ -20,9 +20,9 @@ import torch
 
 
 def _train_default(task: str, root: Path) -> Path:
-    from sdp_cli.collect import CollectConfig, collect
+    from sdp_cli.algorithm.collect import CollectConfig, collect
     from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.train import train
+    from sdp_cli.training.train import train
 
     data, _ = collect(CollectConfig(task=task, n_traj=10, seed=0), root / "data.npz", workers=1)
     cfg = TrainConfig.of(**{"method": "sdp", "epochs": 20, "horizon": 16})
@@ -43,7 +43,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
 
     from sdp_cli.policy import load_policy
-    from sdp_cli.rollout import RolloutConfig, evaluation_xis, instance_generators, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, evaluation_xis, instance_generators, rollout_policy
 
     with tempfile.TemporaryDirectory() as tmp:
         path = args.policy or _train_default(args.task, Path(tmp))

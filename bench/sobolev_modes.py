@@ -25,8 +25,8 @@ def run_one(data: str, out: str, mode: str, seed: int, epochs: int, horizon: int
 
     torch.set_num_threads(1)
     from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.rollout import RolloutConfig, rollout
-    from sdp_cli.train import train
+    from sdp_cli.algorithm.rollout import RolloutConfig, rollout
+    from sdp_cli.training.train import train
 
     t0 = time.perf_counter()
     run = Path(out) / f"{mode}-s{seed}"

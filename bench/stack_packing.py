@@ -3,11 +3,11 @@
     python bench/stack_packing.py [--experiment fig1] [--seeds 0,1,2] [--tasks ur5-fixed] [--methods sdp,dp]
                                   [--stack 8] [--max-s 3]
 
-``sdp pipeline --run`` trains compatible one-iteration runs as stacks (``sdp_cli.runner.pack``); a stack pads
+``sdp pipeline --run`` trains compatible one-iteration runs as stacks (``sdp_cli.experiments.runner.pack``); a stack pads
 every member's batch to its largest. Rule "across sizes" (the packing until 2026-11-27): a training config's
 runs sorted by dataset size and cut into stacks of ``--stack``, so one stack may hold n_traj 2 and 32. Rule
 "one size" (``pack`` now): one dataset size per stack, split evenly. For each rule and each stack, the seconds
-of one stacked step (``sdp_cli.estimate.job_step_seconds``: the trainer's own step on synthetic batches of
+of one stacked step (``sdp_cli.experiments.estimate.job_step_seconds``: the trainer's own step on synthetic batches of
 the task's shapes, padded to the stack's largest batch; ``step_seconds`` for a stack of one) times the steps of
 its longest member; the sums per (task, method) and their ratio are printed. Every distinct (R, B) is measured
 once, so both rules' sums come from the same measurements.
@@ -37,11 +37,11 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(1)
 
-    from sdp_cli.estimate import job_step_seconds, training_stages
-    from sdp_cli.experiment import load_experiment
-    from sdp_cli.pipeline import loop_configs
-    from sdp_cli.runner import pack
-    from sdp_cli.train_stack import stack_key
+    from sdp_cli.experiments.estimate import job_step_seconds, training_stages
+    from sdp_cli.experiments.experiment import load_experiment
+    from sdp_cli.experiments.pipeline import loop_configs
+    from sdp_cli.experiments.runner import pack
+    from sdp_cli.training.train_stack import stack_key
 
     seeds = {int(s) for s in a.seeds.split(",")}
     runs = {n: c for n, c in loop_configs(a.experiment, load_experiment(a.experiment)).items()

@@ -14,9 +14,9 @@ and one optimizer over it. Both are timed round-robin; the median per configurat
 per-member clipping, schedules and random streams of a stacked trainer add a few small ops per step.
 
 ``--trainer``: instead, the trainer's own steps on a real task's shapes: one step of R runs of
-``sdp_cli.train_step.Stack`` (per-member draws, the stacked network, each member's own clipping, AdamW and
-EMA, as ``sdp pipeline --run`` trains them) against R steps of ``sdp_cli.train_step.step`` of one run (``OneRun``),
-both measured by ``sdp_cli.estimate`` (``stacked_step_seconds``, ``step_seconds``) in this one run, and beside
+``sdp_cli.training.train_step.Stack`` (per-member draws, the stacked network, each member's own clipping, AdamW and
+EMA, as ``sdp pipeline --run`` trains them) against R steps of ``sdp_cli.training.train_step.step`` of one run (``OneRun``),
+both measured by ``sdp_cli.experiments.estimate`` (``stacked_step_seconds``, ``step_seconds``) in this one run, and beside
 them the solo step as it was when the issue was filed (38d2c04: AdamW's foreach path, diffusers' per-tensor EMA;
 the issue's goal is >= 3x that).
 """
@@ -98,7 +98,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--trainer", action="store_true", help="the trainer's steps (sdp_cli.train_step.Stack)")
+    ap.add_argument("--trainer", action="store_true", help="the trainer's steps (sdp_cli.training.train_step.Stack)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
@@ -138,7 +138,7 @@ def _solo_38d2c04():
 
     from diffusers.training_utils import EMAModel
 
-    import sdp_cli.train as tr
+    import sdp_cli.training.train as tr
 
     @contextlib.contextmanager
     def ctx():
@@ -155,7 +155,7 @@ def _solo_38d2c04():
 
 
 def trainer_table(a, dev) -> None:
-    from sdp_cli.estimate import stacked_step_seconds, step_seconds
+    from sdp_cli.experiments.estimate import stacked_step_seconds, step_seconds
 
     print("| task | method | B | R | solo at 38d2c04 run-steps/s | solo run-steps/s | stacked run-steps/s | "
           "stacked / solo | stacked / solo at 38d2c04 |")

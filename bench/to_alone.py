@@ -48,7 +48,7 @@ PAPER = {"double_pendulum": "mean cost 50.1, 896 iterations, 80% not converged (
 
 
 def one(task_name: str, baseline: str, n: int) -> dict:
-    from sdp_cli.collect import sample_xi
+    from sdp_cli.algorithm.collect import sample_xi
     from sdp_cli.tasks import get_task
 
     task = get_task(task_name)
@@ -76,7 +76,7 @@ def one(task_name: str, baseline: str, n: int) -> dict:
 
 
 def _ddp(task, n: int) -> dict:
-    from sdp_cli.collect import sample_xi
+    from sdp_cli.algorithm.collect import sample_xi
     from sdp_cli.trajopt.ddp import DDPSolver
 
     xis = np.array([sample_xi(task, 0, i) for i in range(n)])

@@ -38,8 +38,8 @@ def train_all(checkout: Path, out: Path) -> None:
 
     from sdp_cli.policy.checkpoint import load_checkpoint
     from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.train import train
-    from sdp_cli.train_stack import train_stack
+    from sdp_cli.training.train import train
+    from sdp_cli.training.train_stack import train_stack
 
     out.mkdir(parents=True, exist_ok=True)
     data = {n: write_dataset(out / f"p{n}.npz", "pendulum", n_traj=n, seed=n, T=30) for n in (3, 6)}

@@ -85,7 +85,7 @@ def collect_cmd(
     progress: ProgressOpt = True,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
-    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
+    from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.progress import collect_progress, status
 
     set_threads(threads)
@@ -126,8 +126,8 @@ def rollout_cmd(
 ) -> None:
     """Roll a trained policy out on a fixed test set (Algorithm 2, batched)."""
     from sdp_cli.progress import count_progress
-    from sdp_cli.rollout import RolloutConfig, rollout
-    from sdp_cli.train import resolve_device
+    from sdp_cli.algorithm.rollout import RolloutConfig, rollout
+    from sdp_cli.training.train import resolve_device
 
     set_threads(threads)
     with count_progress("rollout (time steps)", None, progress) as on_step:
@@ -154,7 +154,7 @@ def refine_cmd(
 ) -> None:
     """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
     from sdp_cli.progress import count_progress
-    from sdp_cli.refine import refine
+    from sdp_cli.algorithm.refine import refine
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
@@ -177,7 +177,7 @@ def evaluate_cmd(
     metrics: Annotated[Optional[Path], typer.Option(help="Also write the row as a JSON metrics file (DVC metrics).")] = None,
 ) -> None:
     """Summarize a run as one tidy CSV row (policy, refined and TO-alone metrics), with its manifest."""
-    from sdp_cli.evaluate import evaluation_artifacts, evaluation_row, write_evaluation, write_metrics
+    from sdp_cli.algorithm.evaluate import evaluation_artifacts, evaluation_row, write_evaluation, write_metrics
 
     extra = {}
     for t in tag or []:
@@ -230,7 +230,7 @@ def train_cmd(
 ) -> None:
     """Train a policy on a dataset (Algorithm 1, lines 11-23). Every training option (grouped by section below)
     is an option of `sdp loop` too, and a key of an experiment group's `train:`."""
-    from sdp_cli.train import train as run_training
+    from sdp_cli.training.train import train as run_training
 
     set_threads(threads)
     path = run_training(data, out, train, device=device, resume=resume, init=init, progress=progress, log=typer.echo)
@@ -258,8 +258,8 @@ def loop_cmd(
     """Run Algorithm 1 (collect, train, evaluate, repeat); resumable. The training options are `sdp train`'s
     (--epochs per iteration; --seed also seeds collection, 1000 * seed + k; the --save-at checkpoints are
     evaluated too)."""
-    from sdp_cli.loop import LoopConfig, run_loop
-    from sdp_cli.train import resolve_device
+    from sdp_cli.algorithm.loop import LoopConfig, run_loop
+    from sdp_cli.training.train import resolve_device
 
     set_threads(threads)
     cfg = LoopConfig(task=task, train=train, rollout=rollout, **algorithm, n_traj=int_list(n_traj, "--n-traj"),
@@ -288,28 +288,28 @@ def pipeline_cmd(
     stack: Annotated[Optional[int], typer.Option(help="--run, --estimate: runs trained together as one stacked network (compatible runs: fig1's, or loops of as many iterations and dataset sizes, trained in lockstep; default 8, fixed so that a seed gives the same bytes on any machine; 1: every run alone).")] = None,
 ) -> None:
     """Select the experiment that `dvc repro` runs (pipelines/<name>.yaml, written into params.yaml), or run it (--run)."""
-    from sdp_cli.pipeline import select_experiment
+    from sdp_cli.experiments.pipeline import select_experiment
 
     if estimate + run + status > 1:
         raise SdpError("--estimate, --run and --status exclude each other")
     if status:
-        from sdp_cli.runner import status_text
+        from sdp_cli.experiments.runner import status_text
 
         typer.echo(status_text(experiment, out or Path("runs") / experiment))
         return
     if estimate:
-        from sdp_cli.estimate import estimate as run_estimate, format_estimate
+        from sdp_cli.experiments.estimate import estimate as run_estimate, format_estimate
 
         df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True), stack=stack)
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
         from sdp_cli.data.artifacts import check_folder
-        from sdp_cli.runner import run_group, summary_text
+        from sdp_cli.experiments.runner import run_group, summary_text
 
         check_folder(out, "runs folder")
         if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
-            from sdp_cli.workers import die_with_parent
+            from sdp_cli.execution.workers import die_with_parent
 
             die_with_parent(os.getppid())
 

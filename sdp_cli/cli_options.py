@@ -198,15 +198,15 @@ def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[
 
 
 def with_loop_options(cls, injected: str) -> Callable:
-    """Give ``sdp loop`` every option of a :mod:`sdp_cli.loop_options` class as a flag (``--n-algo``, ``--t-a``,
+    """Give ``sdp loop`` every option of a :mod:`sdp_cli.algorithm.loop_options` class as a flag (``--n-algo``, ``--t-a``,
     ``--eval-t-a 1,4,8``, ``--eval-refine/--no-eval-refine``, ...), generated from its fields as the experiment
     keys are; the wrapped function receives ``<injected>=`` the options given: an instance of ``cls``, or, for
-    :class:`~sdp_cli.loop_options.LoopAlgorithmOptions` (``LoopConfig``'s own fields), a ``{field: value}`` dict
+    :class:`~sdp_cli.algorithm.loop_options.LoopAlgorithmOptions` (``LoopConfig``'s own fields), a ``{field: value}`` dict
     (the defaults are the fields')."""
     import inspect
     from dataclasses import fields
 
-    from sdp_cli.loop_options import LoopAlgorithmOptions, _default, option_kind
+    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, _default, option_kind
 
     def param(f):
         base, item, optional = option_kind(f, cls)
@@ -248,16 +248,16 @@ def with_loop_options(cls, injected: str) -> Callable:
 
 
 def with_loop_rollout_options(cls=None) -> Callable:
-    """:func:`with_loop_options` of :class:`~sdp_cli.loop_options.LoopRolloutConfig` (or a subclass with more
+    """:func:`with_loop_options` of :class:`~sdp_cli.algorithm.loop_options.LoopRolloutConfig` (or a subclass with more
     options): ``rollout=LoopRolloutConfig(given options)``."""
-    from sdp_cli.loop_options import LoopRolloutConfig
+    from sdp_cli.algorithm.loop_options import LoopRolloutConfig
 
     return with_loop_options(cls or LoopRolloutConfig, "rollout")
 
 
 def with_loop_algorithm_options(cls=None) -> Callable:
-    """:func:`with_loop_options` of :class:`~sdp_cli.loop_options.LoopAlgorithmOptions` (or a subclass):
+    """:func:`with_loop_options` of :class:`~sdp_cli.algorithm.loop_options.LoopAlgorithmOptions` (or a subclass):
     ``algorithm={given options}``, the keyword arguments of ``LoopConfig``."""
-    from sdp_cli.loop_options import LoopAlgorithmOptions
+    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions
 
     return with_loop_options(cls or LoopAlgorithmOptions, "algorithm")

@@ -1,6 +1,6 @@
 """Evaluations written by older code, brought to this code's layout once: ``sdp migrate RUNS``.
 
-An evaluation is an ``eval.csv`` with its manifest (:func:`sdp_cli.evaluate.write_evaluation`). This code writes
+An evaluation is an ``eval.csv`` with its manifest (:func:`sdp_cli.algorithm.evaluate.write_evaluation`). This code writes
 manifest format :data:`LAYOUT`, whose rows carry every column the report reads; ``sdp report`` refuses older
 ones in one line and names this command, instead of patching them up on every read. Format 1 rows may lack, and
 the migration computes from the artifacts their manifest names:
@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sdp_cli.argmin import policy_outcomes
+from sdp_cli.algorithm.argmin import policy_outcomes
 from sdp_cli.data.artifacts import atomic_write_bytes, load_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import (ARTIFACT_KEYS, LAYOUT, find_manifests, group_violation_rates, read_manifest,
+from sdp_cli.algorithm.evaluate import (ARTIFACT_KEYS, LAYOUT, find_manifests, group_violation_rates, read_manifest,
                               terminal_cost_mean)
 
 __all__ = ["LAYOUT", "outdated", "migrate_rows", "migrate_evaluation", "migrate_runs"]

@@ -1,9 +1,9 @@
 """One rule for seeds, checked before anything is written.
 
 A seed is an integer in ``[0, TRAINING_SEED_LIMIT)``: numpy's ``SeedSequence`` takes no negative
-entropy, and test instances are drawn from ``TEST_SEED_BASE + seed`` (:mod:`sdp_cli.rollout`), so
+entropy, and test instances are drawn from ``TEST_SEED_BASE + seed`` (:mod:`sdp_cli.algorithm.rollout`), so
 every training seed must stay below ``TEST_SEED_BASE`` for the test set to stay disjoint. A loop
-collects iteration ``k`` with seed ``1000 * seed + k`` (:class:`sdp_cli.loop.LoopConfig`), so a loop
+collects iteration ``k`` with seed ``1000 * seed + k`` (:class:`sdp_cli.algorithm.loop.LoopConfig`), so a loop
 seed must be below ``TRAINING_SEED_LIMIT // LOOP_SEED_STRIDE``.
 """
 

@@ -10,9 +10,9 @@ import os
 
 import numpy as np
 
-from sdp_cli import collect as collect_mod
+from sdp_cli.algorithm import collect as collect_mod
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.collect import solve_index
+from sdp_cli.algorithm.collect import solve_index
 
 BAD = 1  # the index whose job raises in the failure tests
 
@@ -60,13 +60,13 @@ def assert_same_dataset(p, q) -> dict:
 
 
 def die_once_after_training(marker, config, out, device="auto"):
-    """`sdp_cli.runner.run_job`, but the first call (per marker) kills its worker process as soon as the
+    """`sdp_cli.experiments.runner.run_job`, but the first call (per marker) kills its worker process as soon as the
     run's training has finished, before its evaluation: the runner must redo (resume) that run."""
     import threading
     import time
     from pathlib import Path
 
-    from sdp_cli.runner import run_job
+    from sdp_cli.experiments.runner import run_job
 
     if not os.path.exists(marker):
         open(marker, "w").close()

@@ -41,7 +41,7 @@ def test_the_transcription_into_aligator_is_exact_and_proxddp_solves_it(name, tm
     missing = ac.anchors_missing()
     if missing:
         pytest.skip(missing)
-    from sdp_cli.rollout import evaluation_xis
+    from sdp_cli.algorithm.rollout import evaluation_xis
     from sdp_cli.tasks import get_task
 
     task = get_task(name)

@@ -20,9 +20,9 @@ import pytest
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
-from sdp_cli.collect import CollectConfig, collect
+from sdp_cli.algorithm.collect import CollectConfig, collect
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
+from sdp_cli.training.train import train
 from synthetic_dataset import write_dataset
 
 runner = CliRunner()

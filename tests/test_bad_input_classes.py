@@ -25,9 +25,9 @@ import yaml
 from typer.testing import CliRunner
 
 from sdp_cli.cli import app
-from sdp_cli.collect import CollectConfig, collect
+from sdp_cli.algorithm.collect import CollectConfig, collect
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
+from sdp_cli.training.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()

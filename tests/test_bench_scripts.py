@@ -46,7 +46,7 @@ def test_trainer_bench_compares_with_the_optimisation_of_38d2c04_and_puts_the_tr
     trainer's (fused AdamW, foreach EMA), and leaves the trainer's in place afterwards."""
     import torch
 
-    import sdp_cli.train as tr
+    import sdp_cli.training.train as tr
     from sdp_cli.policy.config import TrainConfig
 
     cfg, params = TrainConfig.of(method="dp"), [torch.nn.Parameter(torch.zeros(3))]

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz, load_timing
-from sdp_cli.collect import CollectConfig, _next_indices, collect, kept_indices, sample_xi
+from sdp_cli.algorithm.collect import CollectConfig, _next_indices, collect, kept_indices, sample_xi
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 

@@ -15,8 +15,8 @@ from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
-from sdp_cli.train_stack import stack_key, train_stack
+from sdp_cli.training.train import train
+from sdp_cli.training.train_stack import stack_key, train_stack
 from synthetic_dataset import write_dataset
 
 TINY = dict(horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=16, checkpoint_every_s=1e9)

@@ -146,7 +146,7 @@ def test_a_reference_one_step_off_breaks_the_replay(optima, monkeypatch):
 def test_inverse_dynamics_is_the_row_by_row_conversion(optima):
     """`inverse-dynamics` plays each row through `controls_from_action` from the reached state, bit for bit (the
     rollout of a fixed chunk, as at 3cd1b8b)."""
-    from sdp_cli.rollout import step_batch
+    from sdp_cli.algorithm.rollout import step_batch
 
     task, arrays = _optima(optima, "quadrotor-0")
     rng = np.random.default_rng(2)
@@ -163,7 +163,7 @@ def test_inverse_dynamics_is_the_row_by_row_conversion(optima):
 def test_tracking_feeds_back_the_chunk_error(optima):
     """With the reached state off the reference, the tracking controls differ from the feedforward by K dx, and
     the closed loop ends nearer the reference than the open loop of the same feedforward."""
-    from sdp_cli.rollout import step_batch
+    from sdp_cli.algorithm.rollout import step_batch
 
     task, arrays = _optima(optima, "quadrotor-0")
     X = arrays["X"][:1]

@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from sdp_cli.errors import SdpError
-from sdp_cli.solve_jobs import sample_xi
+from sdp_cli.algorithm.solve_jobs import sample_xi
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import Task
 from sdp_cli.trajopt import get_solver
@@ -358,7 +358,7 @@ def test_every_iteration_on_a_quadrotor_with_inactive_constraints_takes_a_step(m
     """quadrotor-0's floor and ceiling stay inactive from the naive guess: the augmented-Lagrangian loop has
     nothing to update, so every iteration is a line search (an update that changes nothing used to take an
     iteration of its own without a step: 6 of about 20)."""
-    from sdp_cli.rollout import evaluation_xis
+    from sdp_cli.algorithm.rollout import evaluation_xis
     from sdp_cli.trajopt.ddp import DDPSolver
 
     task = get_task("quadrotor-0")

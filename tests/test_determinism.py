@@ -107,7 +107,7 @@ def test_rerun_at_the_same_paths_writes_the_same_bytes(tmp_path):
     assert load_timing(d / "data.npz")["wall_time"] > 0 and load_timing(d / "policy")["wall_time"] > 0
     assert load_timing(d / "rollout.npz")["rollout_time"] > 0
     assert len(load_timing(d / "refined.npz")["inst_pol_time"]) == 2
-    from sdp_cli.evaluate import read_evaluation
+    from sdp_cli.algorithm.evaluate import read_evaluation
 
     row = read_evaluation(d / "eval.csv").iloc[0]
     assert row.rollout_time > 0 and row.to_alone_solve_time_mean > 0
@@ -119,7 +119,7 @@ def test_the_same_commands_in_another_clone_write_the_same_bytes(tmp_path, monke
     outputs with the same SHA-256 (artifacts record paths relative to themselves, never absolute
     ones), and the recorded paths still lead to the files they name."""
     from sdp_cli.data.artifacts import file_sha256
-    from sdp_cli.evaluate import read_manifest
+    from sdp_cli.algorithm.evaluate import read_manifest
     from sdp_cli.policy.api import load_policy
 
     hashes = []

@@ -9,7 +9,7 @@ def test_evaluation_row_counts_violations_and_goal_distance(tmp_path):
     import numpy as np
 
     from sdp_cli.data.artifacts import save_npz
-    from sdp_cli.evaluate import VIOLATION_TOL, evaluation_row
+    from sdp_cli.algorithm.evaluate import VIOLATION_TOL, evaluation_row
 
     viol = np.array([0.0, 0.5 * VIOLATION_TOL, 2 * VIOLATION_TOL, 0.3, np.inf])
     goal = np.array([0.01, 0.02, 0.5, 1.0, np.inf])

@@ -8,9 +8,9 @@ from typer.testing import CliRunner
 from executor_jobs import BAD, always_exit, exit_once, flaky_jobs, square_or_raise
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.collect import CollectConfig, collect
+from sdp_cli.algorithm.collect import CollectConfig, collect
 from sdp_cli.errors import SdpError
-from sdp_cli.executor import PoolExecutor, SerialExecutor
+from sdp_cli.execution.executor import PoolExecutor, SerialExecutor
 
 runner = CliRunner()
 

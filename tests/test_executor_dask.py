@@ -23,10 +23,10 @@ import executor_jobs
 from executor_jobs import BAD, assert_same_dataset, flaky_jobs
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz, save_npz
-from sdp_cli.collect import CollectConfig, collect, sample_xi
+from sdp_cli.algorithm.collect import CollectConfig, collect, sample_xi
 from sdp_cli.errors import SdpError
-from sdp_cli.executor import make_executor
-from sdp_cli.refine import refine
+from sdp_cli.execution.executor import make_executor
+from sdp_cli.algorithm.refine import refine
 from sdp_cli.tasks import get_task
 from sdp_cli.trajopt import build_count
 
@@ -183,7 +183,7 @@ def test_local_cluster_leaves_this_process_environment_alone(monkeypatch):
 def test_runs_of_an_experiment_on_dask_equal_local(tmp_path, cluster):
     """`sdp pipeline NAME --run --scheduler ADDR`: the runs execute on the cluster's workers, packed into a stack
     as on the local pool, with the same results as in this process."""
-    from sdp_cli.runner import run_group
+    from sdp_cli.experiments.runner import run_group
 
     (tmp_path / "pipelines").mkdir()
     (tmp_path / "pipelines" / "tiny.yaml").write_text(

@@ -1,6 +1,6 @@
 """The package's import graph (every `import` of an sdp_cli module, including the ones inside
 functions) has no cycle: each module can be read, tested and replaced on its own (e.g. `sdp collect`
-and `sdp refine` share their solve jobs through sdp_cli.solve_jobs instead of importing each other)."""
+and `sdp refine` share their solve jobs through sdp_cli.algorithm.solve_jobs instead of importing each other)."""
 
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def test_find_cycle_finds_one():
 
 def test_no_import_cycles():
     graph = import_graph()
-    assert "sdp_cli.solve_jobs" in graph["sdp_cli.collect"] and "sdp_cli.solve_jobs" in graph["sdp_cli.refine"]
+    assert "sdp_cli.algorithm.solve_jobs" in graph["sdp_cli.algorithm.collect"] and "sdp_cli.algorithm.solve_jobs" in graph["sdp_cli.algorithm.refine"]
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
 
 
@@ -103,7 +103,42 @@ def test_packages_have_no_import_cycle_and_tasks_import_nothing_above_them():
     assert "sdp_cli.tasks" in packages["sdp_cli.checks"]      # the check-task orchestration lives above tasks/
 
 
+#: the layers of the folders, bottom up: a package may import its own layer's helpers and the layers below
+LAYERS = [{"sdp_cli.errors", "sdp_cli.families", "sdp_cli.rules", "sdp_cli.seeds", "sdp_cli.execution",
+           "sdp_cli.dynamics"},
+          {"sdp_cli.tasks", "sdp_cli.trajopt"}, {"sdp_cli.data", "sdp_cli.losses"}, {"sdp_cli.policy"},
+          {"sdp_cli.training"}, {"sdp_cli.algorithm"}, {"sdp_cli.experiments", "sdp_cli.migrate"},
+          {"sdp_cli.checks", "sdp_cli.report"}]
+
+
+def test_folders_are_layers_and_no_package_imports_a_layer_above_it():
+    packages = package_graph(import_graph())
+    level = {p: i for i, layer in enumerate(LAYERS) for p in layer}
+    up = [(p, d) for p, deps in packages.items() if p in level for d in deps if level.get(d, -1) > level[p]]
+    assert not up, up
+    assert packages["sdp_cli.execution"] <= {"sdp_cli.errors"}, packages["sdp_cli.execution"]
+
+
 def test_package_graph_sees_an_upward_import():
-    graph = {"sdp_cli.tasks.base": {"sdp_cli.rollout"}, "sdp_cli.rollout": {"sdp_cli.tasks.base"}}
-    assert package_graph(graph) == {"sdp_cli.tasks": {"sdp_cli.rollout"}, "sdp_cli.rollout": {"sdp_cli.tasks"}}
+    graph = {"sdp_cli.tasks.base": {"sdp_cli.algorithm.rollout"}, "sdp_cli.algorithm.rollout": {"sdp_cli.tasks.base"}}
+    assert package_graph(graph) == {"sdp_cli.tasks": {"sdp_cli.algorithm"}, "sdp_cli.algorithm": {"sdp_cli.tasks"}}
     assert find_cycle(package_graph(graph)) is not None
+
+
+def test_the_old_paths_of_moved_modules_are_the_new_modules_for_one_release():
+    import importlib
+    import sys
+    import warnings
+
+    from sdp_cli.moved import MOVED
+
+    for old, new in MOVED.items():
+        assert (ROOT / Path(*new.split("."))).with_suffix(".py").is_file() and not (
+            ROOT / Path(*old.split("."))).with_suffix(".py").exists(), (old, new)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sys.modules.pop("sdp_cli.collect", None)
+        old = importlib.import_module("sdp_cli.collect")
+    assert old is importlib.import_module("sdp_cli.algorithm.collect")
+    assert any(issubclass(w.category, DeprecationWarning) and "sdp_cli.algorithm.collect" in str(w.message)
+               for w in caught)

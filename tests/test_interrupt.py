@@ -16,7 +16,7 @@ import pytest
 
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
+from sdp_cli.training.train import train
 from synthetic_dataset import write_dataset
 
 TINY = dict(horizon=8, down_dims=[8, 16], n_groups=4, step_embed_dim=8, batch_size=8, checkpoint_every_s=1e9)
@@ -84,7 +84,7 @@ def test_a_kill_between_the_writes_of_a_checkpoint_then_resume_is_identical(data
     when they were written in that order: the metrics rows since the last flush were lost for good, seen as
     rows 47-64 missing after a resume). Killed right after either write of the 5th checkpoint, `--resume`
     must give the metrics and checkpoint bytes of an uninterrupted run."""
-    import sdp_cli.train as train_mod
+    import sdp_cli.training.train as train_mod
     from sdp_cli.data.metrics_log import MetricsLog
 
     cfg = TrainConfig.of(method="sdp", epochs=20, **{**TINY, "checkpoint_every_s": 0.0})
@@ -121,7 +121,7 @@ def test_ctrl_c_during_a_loop_then_the_same_command_gives_the_same_results(tmp_p
 
     import pandas as pd
 
-    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, run_loop
+    from sdp_cli.algorithm.loop import LoopConfig, LoopRolloutConfig, run_loop
 
     train = TrainConfig.of(method="sdp", epochs=150, horizon=8, batch_size=8, down_dims=[8, 16], n_groups=4,
                            step_embed_dim=8)
@@ -156,7 +156,7 @@ def test_only_ctrl_c_twice_interrupts_at_once():
     second SIGTERM must not cut its checkpoint short; Ctrl-C twice (an impatient user) still stops at once."""
     import time
 
-    from sdp_cli.interrupts import deferred
+    from sdp_cli.execution.interrupts import deferred
 
     before = signal.getsignal(signal.SIGINT)
     if before is signal.SIG_IGN:                              # (a suite run in the background ignores SIGINT)

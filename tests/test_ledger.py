@@ -484,7 +484,7 @@ def test_fig3_claim_per_horizon_and_action_length():
 def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     """`sdp report --runs ... --ledger ...`: the ledger's numbers come from the run folders through the
     report's all_runs.csv (here the K ablation, claim 12, from synthetic evaluations)."""
-    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.algorithm.evaluate import write_evaluation
 
     monkeypatch.chdir(tmp_path)
     for k, cost in ((2, 30.0), (5, 15.5), (10, 15.0)):

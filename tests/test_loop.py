@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz, resolve_recorded
-from sdp_cli.evaluate import is_timing_column
+from sdp_cli.algorithm.evaluate import is_timing_column
 
 runner = CliRunner()
 

@@ -1,5 +1,5 @@
 """One Algorithm 1: `dvc repro` of an experiment and `sdp loop` with the same settings write the same
-artifacts (the DVC stage runs the experiment's runs through sdp_cli.runner, i.e. sdp_cli.loop.run_loop)."""
+artifacts (the DVC stage runs the experiment's runs through sdp_cli.experiments.runner, i.e. sdp_cli.algorithm.loop.run_loop)."""
 
 from __future__ import annotations
 

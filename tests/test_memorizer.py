@@ -28,7 +28,7 @@ def replan_times(T: int, t_a: int) -> list[int]:
 def test_every_rollout_replanning_time_is_a_training_start():
     """For each (task T, T_h, T_a) of pipelines/*.yaml: the chunk starts cover every replanning time, and
     the rollout asks for chunks exactly at those times."""
-    from sdp_cli.rollout import RolloutConfig, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, rollout_policy
 
     triples = sorted(pipeline_chunk_cases(ROOT))
     assert len(triples) > 10

@@ -142,7 +142,7 @@ def test_stacking_is_a_capability_a_family_opts_into():
     does not (here the diffusion family with the capability switched off, as a plugin of another kind would
     be) trains each run alone instead of failing in the stacker."""
     from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.train_stack import stackable
+    from sdp_cli.training.train_stack import stackable
 
     class SoloChunks(DiffusionUnetPolicy):
         stackable = False
@@ -230,7 +230,7 @@ def test_a_chunked_family_that_is_no_diffusion_policy_runs_through_every_command
     AttributeError: 'ChunkMLPPolicy' object has no attribute 'unet'."""
     import pandas as pd
 
-    from sdp_cli.estimate import estimate
+    from sdp_cli.experiments.estimate import estimate
 
     plugin = tmp_path / "chunk_mlp.py"
     plugin.write_text(CHUNK_MLP)

@@ -12,7 +12,7 @@ import typer
 
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
-from sdp_cli.pipeline import _GROUP_OWNED, train_option_names, train_option_type
+from sdp_cli.experiments.pipeline import _GROUP_OWNED, train_option_names, train_option_type
 from sdp_cli.policy.config import RENAMED, TrainConfig, flat_options, options
 
 #: `sdp train` parameters that are not training options (where the run goes, how it runs)
@@ -62,7 +62,7 @@ def test_a_loop_folder_of_the_flat_layout_resumes_with_the_same_settings_only(tm
     """loop_config.json written before the sections (flat, training options in `train_options` with older names)
     is migrated before the comparison: the same settings resume, another one is refused by its dotted name."""
     from sdp_cli import RESULTS_VERSION
-    from sdp_cli.loop import LoopConfig, LoopRolloutConfig, check_resume
+    from sdp_cli.algorithm.loop import LoopConfig, LoopRolloutConfig, check_resume
 
     train = TrainConfig.of(method="sdp", epochs=5, horizon=8, seed=2, save_at=[2], down_dims=[8, 16], n_groups=4,
                            sobolev_alpha=0.001)
@@ -92,8 +92,8 @@ def test_a_loop_rollout_option_added_once_is_a_flag_an_experiment_key_and_a_vali
     from typer.testing import CliRunner
 
     from sdp_cli.cli_options import with_loop_rollout_options
-    from sdp_cli.experiment import GROUP_DEFAULTS, GROUP_TYPES, type_ok
-    from sdp_cli.loop_options import LoopRolloutConfig, from_group, group_keys, loop_opt
+    from sdp_cli.experiments.experiment import GROUP_DEFAULTS, GROUP_TYPES, type_ok
+    from sdp_cli.algorithm.loop_options import LoopRolloutConfig, from_group, group_keys, loop_opt
 
     @dataclass(frozen=True)
     class WithBudget(LoopRolloutConfig):
@@ -131,8 +131,8 @@ def test_every_loop_option_is_a_flag_of_loop_and_an_experiment_key():
     key come from one field (LoopRolloutConfig's, LoopAlgorithmOptions' that LoopConfig inherits)."""
     from dataclasses import fields
 
-    from sdp_cli.experiment import GROUP_TYPES
-    from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig
+    from sdp_cli.experiments.experiment import GROUP_TYPES
+    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, LoopRolloutConfig
 
     for cls in (LoopRolloutConfig, LoopAlgorithmOptions):
         names = {f.name for f in fields(cls)}
@@ -149,8 +149,8 @@ def test_an_algorithm_option_added_once_is_a_flag_a_key_a_validated_loop_setting
     from typer.testing import CliRunner
 
     from sdp_cli.cli_options import with_loop_algorithm_options
-    from sdp_cli.loop import LoopConfig
-    from sdp_cli.loop_options import LoopAlgorithmOptions, from_group, group_keys, loop_opt
+    from sdp_cli.algorithm.loop import LoopConfig
+    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, from_group, group_keys, loop_opt
     from sdp_cli.policy.config import TrainConfig
 
     @dataclass(frozen=True, kw_only=True)

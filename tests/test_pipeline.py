@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.experiment import run_names
-from sdp_cli.experiment import load_experiment
-from sdp_cli.pipeline import loop_configs, select_experiment
+from sdp_cli.experiments.experiment import run_names
+from sdp_cli.experiments.experiment import load_experiment
+from sdp_cli.experiments.pipeline import loop_configs, select_experiment
 from sdp_cli.tasks import task_names
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,7 +118,7 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     from typer.testing import CliRunner
 
     from sdp_cli.cli import app
-    from sdp_cli.estimate import estimate, training_stages
+    from sdp_cli.experiments.estimate import estimate, training_stages
 
     small = training_stages(loop_configs("small", load_experiment("small", root=ROOT)))
     assert len(small) == 4 and {(s.E, s.B) for s in small} == {(53, 53)}
@@ -132,7 +132,7 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     t = totals["cpu"]
     assert t["parallel_s"] == pytest.approx(max(t["sequential_s"] / 2, float(df.total_cpu_s.max())))
     # saved as results/estimates/ keeps it, the reports read it back (hours printed to 3 decimals)
-    from sdp_cli.estimate import format_estimate
+    from sdp_cli.experiments.estimate import format_estimate
     from sdp_cli.report.estimates import estimated_hours, read_estimate
 
     saved = tmp_path / "small.txt"
@@ -158,7 +158,7 @@ def test_estimate_measures_every_step_on_one_thread(monkeypatch):
     out at 11 h. Every measurement runs on one thread, as the runs train; the threads are put back after."""
     import torch
 
-    from sdp_cli import estimate as E
+    from sdp_cli.experiments import estimate as E
 
     seen = []
 
@@ -182,7 +182,7 @@ def test_estimate_times_a_loops_to_by_its_family(monkeypatch):
     """`--estimate` charges a loop's TO at its family's reference time: box-FDDP's where the task gives one
     (results/tasks/TO_alone.md), multiple shooting's otherwise (a user's task); single shooting's either way."""
     from sdp_cli import tasks
-    from sdp_cli.estimate import to_reference
+    from sdp_cli.experiments.estimate import to_reference
 
     assert to_reference("double_pendulum") == (0.010, 0.155)
     assert to_reference("double_pendulum", "ddp") == (0.045, 0.155)
@@ -204,7 +204,7 @@ def test_estimate_times_steps_in_cpu_time_not_wall_time():
     5-11x high in wall time beside training runs (fig3: 1598 h in one call, 147 h in another)."""
     import time
 
-    from sdp_cli.estimate import _median_seconds
+    from sdp_cli.experiments.estimate import _median_seconds
 
     def waits():
         time.sleep(0.02)

@@ -31,7 +31,7 @@ def test_report_ignores_runs_the_selected_experiment_no_longer_has(tmp_path, mon
     import yaml
 
     from sdp_cli.errors import SdpError
-    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.algorithm.evaluate import write_evaluation
     from sdp_cli.report.make import make_report
 
     monkeypatch.chdir(tmp_path)
@@ -71,7 +71,7 @@ def test_report_reads_only_what_manifests_name(tmp_path, monkeypatch):
     import pytest
 
     from sdp_cli.errors import SdpError
-    from sdp_cli.evaluate import manifest_path, write_evaluation
+    from sdp_cli.algorithm.evaluate import manifest_path, write_evaluation
     from sdp_cli.report.runs import load_runs
 
     monkeypatch.chdir(tmp_path)
@@ -106,7 +106,7 @@ def test_runs_in_symlinked_folders_are_read_once_each(tmp_path):
     from typer.testing import CliRunner
 
     from sdp_cli.cli import app
-    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.algorithm.evaluate import write_evaluation
     from sdp_cli.report.runs import load_runs
 
     row = {"task": "pendulum", "method": "dp", "n_traj": 3, "t_a": 4, "train_seed": 0, "n": 2, "epochs": 5,
@@ -149,9 +149,9 @@ def test_rows_evaluated_before_violation_groups_get_them_from_their_rollouts(tmp
     import pandas as pd
 
     from sdp_cli.data.artifacts import save_npz
-    from sdp_cli.evaluate import evaluation_row
+    from sdp_cli.algorithm.evaluate import evaluation_row
     from sdp_cli.migrate import migrate_rows
-    from sdp_cli.rollout import evaluate_rollouts
+    from sdp_cli.algorithm.rollout import evaluate_rollouts
     from sdp_cli.tasks import get_task
 
     X, U = np.zeros((2, 101, 2)), np.zeros((2, 100, 1))
@@ -342,7 +342,7 @@ def test_evaluations_of_older_code_are_refused_until_migrated_once(tmp_path):
 
     from sdp_cli.cli import app
     from sdp_cli.errors import SdpError
-    from sdp_cli.evaluate import LAYOUT, manifest_path, write_evaluation
+    from sdp_cli.algorithm.evaluate import LAYOUT, manifest_path, write_evaluation
     from sdp_cli.migrate import migrate_evaluation
     from sdp_cli.report.runs import load_runs
 
@@ -486,7 +486,7 @@ def test_timing_table_counts_single_shooting_and_the_measured_wall(tmp_path):
     import pandas as pd
 
     from sdp_cli.data.artifacts import save_timing
-    from sdp_cli.evaluate import write_evaluation
+    from sdp_cli.algorithm.evaluate import write_evaluation
     from sdp_cli.report.figures.timing import timing_table
 
     pol = tmp_path / "run" / "it0" / "policy"

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import write_evaluation
+from sdp_cli.algorithm.evaluate import write_evaluation
 from sdp_cli.report.carry import Carried
 from sdp_cli.report.rows import Variant, plain_method
 from sdp_cli.report.make import make_report

@@ -13,13 +13,13 @@ from typer.testing import CliRunner
 
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
-from sdp_cli.collect import CollectConfig, collect
+from sdp_cli.algorithm.collect import CollectConfig, collect
 from sdp_cli.errors import SdpError
 from sdp_cli.policy import load_policy
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.refine import WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes, refine_instance
-from sdp_cli.rollout import RolloutConfig, instance_generators, rollout_policy, evaluation_xis
-from sdp_cli.train import train
+from sdp_cli.algorithm.refine import WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes, refine_instance
+from sdp_cli.algorithm.rollout import RolloutConfig, instance_generators, rollout_policy, evaluation_xis
+from sdp_cli.training.train import train
 
 runner = CliRunner()
 TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "mlp_hidden": [32, 32], "batch_size": 32}
@@ -192,7 +192,7 @@ def test_a_diverged_finite_rollout_is_no_warm_start():
     bound DIVERGENCE_STATE rejects it."""
     from pathlib import Path
 
-    from sdp_cli.refine import usable_guess
+    from sdp_cli.algorithm.refine import usable_guess
     from sdp_cli.tasks import get_task
 
     g = np.load(Path(__file__).parent / "data" / "diverged_double_pendulum_guess.npz")
@@ -235,7 +235,7 @@ def test_single_shooting_baseline_is_reported_from_both_guesses(trained, tmp_pat
 
 
 def test_a_rollout_names_its_policy_from_its_folder_and_older_ones_from_where_they_ran(tmp_path, monkeypatch):
-    from sdp_cli.evaluate import _recorded_policy
+    from sdp_cli.algorithm.evaluate import _recorded_policy
 
     (tmp_path / "runs" / "policy").mkdir(parents=True)
     (tmp_path / "runs" / "eval").mkdir()

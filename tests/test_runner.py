@@ -1,4 +1,4 @@
-"""`sdp pipeline NAME --run` (sdp_cli.runner): the runs of an experiment in parallel, resumable, with the
+"""`sdp pipeline NAME --run` (sdp_cli.experiments.runner): the runs of an experiment in parallel, resumable, with the
 same results as one after another; a killed worker's run is redone."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.errors import SdpError
-from sdp_cli.pipeline import loop_configs
-from sdp_cli.runner import run_group
+from sdp_cli.experiments.pipeline import loop_configs
+from sdp_cli.experiments.runner import run_group
 
 TINY = """
 description: two runs of a tiny loop
@@ -69,7 +69,7 @@ def _same_runs(a, b):
 
 
 def test_runs_of_an_experiment_are_loop_configs(root):
-    from sdp_cli.experiment import load_experiment
+    from sdp_cli.experiments.experiment import load_experiment
 
     spec = load_experiment("tiny", root)
     cfgs = loop_configs("tiny", spec)
@@ -138,7 +138,7 @@ def test_dvc_mode_never_deletes_and_restarts_only_another_results_version(root, 
     import shutil
 
     from sdp_cli import RESULTS_VERSION
-    from sdp_cli.runner import superseded_dir
+    from sdp_cli.experiments.runner import superseded_dir
 
     out = tmp_path / "runs" / "tiny"
     shutil.copytree(sequential[0] / RUNS[0], out / RUNS[0])
@@ -153,9 +153,9 @@ def test_dvc_mode_never_deletes_and_restarts_only_another_results_version(root, 
         assert ck.stat().st_mtime_ns == before
     old = {k: v for k, v in json.loads(cfg.read_text()).items() if k != "results_version"}   # a version-1 run
     cfg.write_text(json.dumps(old))
-    from sdp_cli.experiment import load_experiment
-    from sdp_cli.loop import check_resume
-    from sdp_cli.pipeline import loop_configs
+    from sdp_cli.experiments.experiment import load_experiment
+    from sdp_cli.algorithm.loop import check_resume
+    from sdp_cli.experiments.pipeline import loop_configs
 
     with pytest.raises(SdpError, match="results_version=1"):
         check_resume(loop_configs("tiny", load_experiment("tiny", root))[RUNS[0]], out / RUNS[0], same_results=True)
@@ -178,7 +178,7 @@ def test_status_reports_each_run_from_its_folder(root, sequential, tmp_path, mon
     import json
     import shutil
 
-    from sdp_cli.runner import run_status
+    from sdp_cli.experiments.runner import run_status
 
     out = tmp_path / "runs"
     shutil.copytree(sequential[0] / RUNS[0], out / RUNS[0])
@@ -202,10 +202,10 @@ SIX = TINY.replace("seeds: [0, 1]", "seeds: [0, 1, 2]").replace("n_traj: [2]", "
 def test_compatible_runs_train_as_one_stack_and_equal_their_solo_runs(root):
     """`sdp pipeline --run` packs compatible one-iteration runs (3 seeds x 2 dataset sizes) into one stack: the
     same evaluations as the runs trained one by one, to float32 rounding."""
-    from sdp_cli.runner import pack, split_even
+    from sdp_cli.experiments.runner import pack, split_even
 
     (root / "pipelines" / "six.yaml").write_text(SIX)
-    runs = loop_configs("six", __import__("sdp_cli.experiment", fromlist=["x"]).load_experiment("six", root))
+    runs = loop_configs("six", __import__("sdp_cli.experiments.experiment", fromlist=["x"]).load_experiment("six", root))
     size = {n: [r for r in runs if runs[r].n_traj_at(0) == n] for n in (2, 3)}
     assert [len(size[2]), len(size[3])] == [3, 3]
     # one dataset size per stack (a stack pads every batch to its largest), the larger first; split evenly
@@ -248,9 +248,9 @@ def test_loops_of_several_iterations_train_as_one_stack_in_lockstep(root):
     each iteration every member collects (warm-started by its own previous policy) and merges its own buffer, then
     the members train as one stack, each warm-started from its own previous policy. The evaluations equal the
     loops run alone, to float32 rounding (the stack's grouped kernels sum in another order)."""
-    from sdp_cli.experiment import load_experiment
+    from sdp_cli.experiments.experiment import load_experiment
     from sdp_cli.policy.checkpoint import load_checkpoint
-    from sdp_cli.runner import pack
+    from sdp_cli.experiments.runner import pack
 
     (root / "pipelines" / "loops.yaml").write_text(LOOPS)
     runs = loop_configs("loops", load_experiment("loops", root))

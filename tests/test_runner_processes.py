@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from sdp_cli.errors import SdpError
-from sdp_cli.runner import lock_path, run_group, runner_lock
+from sdp_cli.experiments.runner import lock_path, run_group, runner_lock
 
 LONG = """
 groups:

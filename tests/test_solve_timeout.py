@@ -61,7 +61,7 @@ def test_timeout_setting(monkeypatch):
 
 
 def test_a_solve_past_the_limit_is_not_converged_and_guarded_solves_equal_unguarded(monkeypatch):
-    from sdp_cli.solve_jobs import sample_xi
+    from sdp_cli.algorithm.solve_jobs import sample_xi
     from sdp_cli.tasks import get_task
     from sdp_cli.trajopt import get_solver
 

@@ -335,8 +335,8 @@ def test_gains_at_a_grazing_contact_are_a_one_sided_derivative():
 def test_violations_are_told_apart_by_group_in_the_task_and_the_evaluation():
     """A path through the column breaks ``obstacles`` only, one below the floor ``floor_ceiling`` only; the
     evaluation's per-group rates are the same from a rollout's stored arrays and recomputed from its X."""
-    from sdp_cli.evaluate import group_violation_rates
-    from sdp_cli.rollout import evaluate_rollouts
+    from sdp_cli.algorithm.evaluate import group_violation_rates
+    from sdp_cli.algorithm.rollout import evaluate_rollouts
 
     task = get_task("quadrotor-1")
     assert set(task.state_constraint_groups()) == {"floor_ceiling", "obstacles"}

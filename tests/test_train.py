@@ -15,7 +15,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy import DiffusionUnetPolicy, MLPPolicy, load_policy
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
+from sdp_cli.training.train import train
 from synthetic_dataset import write_dataset
 
 T = 30
@@ -252,7 +252,7 @@ def test_epoch_sampling_without_replacement():
 @pytest.mark.parametrize("method", ["sdp", "pddp"])
 def test_train_steps_see_one_epoch_of_distinct_samples(data, tmp_path, monkeypatch, method):
     """Each epoch trains ceil(E / B) steps on E distinct samples, the last batch smaller."""
-    import sdp_cli.train as tr
+    import sdp_cli.training.train as tr
 
     seen = []
     orig = tr.Run.next_batch

@@ -1,4 +1,4 @@
-"""Many runs at once (sdp_cli.train_stack): a run trained in a stack equals the same run trained alone, to float32
+"""Many runs at once (sdp_cli.training.train_stack): a run trained in a stack equals the same run trained alone, to float32
 rounding, whichever runs share its stack; its checkpoint is a solo one (load_policy, resume); a killed stack
 resumes every member."""
 
@@ -13,8 +13,8 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy import load_policy
 from sdp_cli.policy.checkpoint import load_checkpoint
 from sdp_cli.policy.config import TrainConfig
-from sdp_cli.train import train
-from sdp_cli.train_stack import train_stack
+from sdp_cli.training.train import train
+from sdp_cli.training.train_stack import train_stack
 from synthetic_dataset import write_dataset
 
 T = 30

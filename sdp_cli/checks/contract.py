@@ -61,7 +61,7 @@ def manifold_fd(task: Task, f, x, eps=1e-4):
 
 def model_rows(task: Task) -> list[dict]:
     """The solver-free checks (see the module docstring)."""
-    from sdp_cli.rollout import step_batch
+    from sdp_cli.algorithm.rollout import step_batch
 
     xi, X, U = sample_trajectory(task)
     shapes = (xi.shape == (task.n_xi,) and X.shape == (len(U) + 1, task.nx) and task.u_lb.shape == task.u_ub.shape
@@ -113,7 +113,7 @@ def action_rows(task: Task, action: str) -> list[dict]:
 def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: int = 20) -> dict:
     """``n_traj`` converged TO optima from the naive guess (instances ``(seed, i)`` as ``sdp collect``
     draws them): ``{"X", "U", "xi", "K", "Phi"}``."""
-    from sdp_cli.solve_jobs import sample_xi
+    from sdp_cli.algorithm.solve_jobs import sample_xi
     from sdp_cli.trajopt import get_solver
 
     solver = get_solver(task)
@@ -135,9 +135,9 @@ def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: in
 
 def memorizer_rollouts(task: Task, arrays: dict, T_h: int, T_a: int, conversion: str | None = None) -> dict:
     """The memorizer of ``arrays``' chunks rolled out on their own instances under ``conversion`` (None: the
-    task's default): :func:`~sdp_cli.rollout.evaluate_rollouts`' record plus ``X``, ``U``."""
+    task's default): :func:`~sdp_cli.algorithm.rollout.evaluate_rollouts`' record plus ``X``, ``U``."""
     from sdp_cli.policy.memorizer import MemorizerPolicy
-    from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, evaluate_rollouts, rollout_policy
 
     pol = MemorizerPolicy(task, arrays, T_h)
     cfg = RolloutConfig(n=len(arrays["xi"]), t_a=T_a, conversion=conversion).validate(pol)
@@ -172,9 +172,9 @@ def optimum_rows(task: Task, cases, n_traj: int = 2, arrays: dict | None = None)
 def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
     """``(task, T_h, T_a)`` of every chunked policy the experiments in ``root/pipelines`` roll out: the
     collection warm starts (``t_a``, default ``T_h - T_o``) and every evaluated T_a; each run's settings as
-    ``sdp pipeline`` resolves them (:func:`sdp_cli.pipeline.loop_configs`, group defaults included)."""
-    from sdp_cli.experiment import PIPELINES_DIR, load_experiment
-    from sdp_cli.pipeline import loop_configs
+    ``sdp pipeline`` resolves them (:func:`sdp_cli.experiments.pipeline.loop_configs`, group defaults included)."""
+    from sdp_cli.experiments.experiment import PIPELINES_DIR, load_experiment
+    from sdp_cli.experiments.pipeline import loop_configs
     from sdp_cli.policy.registry import get_method
 
     out = set()

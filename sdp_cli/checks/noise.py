@@ -41,7 +41,7 @@ def noisy_memorizer_replay(task, arrays: dict, T_h: int, T_a: int, conversion: s
     TO's cost on the same instance)."""
     from sdp_cli.data.chunks import fit_normalizer
     from sdp_cli.policy.memorizer import MemorizerPolicy, NoisyMemorizer
-    from sdp_cli.rollout import RolloutConfig, evaluate_rollouts, rollout_policy
+    from sdp_cli.algorithm.rollout import RolloutConfig, evaluate_rollouts, rollout_policy
 
     mem = MemorizerPolicy(task, arrays, T_h)
     scale = fit_normalizer(task, arrays, mem.task.action).action_scale.double().numpy()

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from sdp_cli.data.chunks import action_sequence
-from sdp_cli.rollout import step_batch
+from sdp_cli.algorithm.rollout import step_batch
 from sdp_cli.tasks import Task
 
 REST_SPEED = 0.05           # ||v|| (rad/s, or m/s and rad/s) below which a state is at rest

@@ -22,7 +22,7 @@ Rollout-side API (everything in physical units, numpy in / numpy out, batched ov
     u = pol.act(x, xi)                  # (B, nx), (B, n_xi) -> (B, nu)
 
 Training side (normalized tensors): ``policy.compute_loss(batch, generator) -> (loss, parts)``, driven by
-:func:`sdp_cli.train_step.step`. The observation fed to the network is ``o_t = (task.observation(x_t),
+:func:`sdp_cli.training.train_step.step`. The observation fed to the network is ``o_t = (task.observation(x_t),
 u_{t-1})``, normalized by the normalizer stored in the checkpoint (:mod:`sdp_cli.data.normalizer`).
 """
 

@@ -9,7 +9,7 @@ scheduler. Everything the project does with a policy goes through this interface
   the family's samples and names the action variable; :meth:`Policy.dims_for` gives the network sizes;
 - **training** (normalized tensors): :meth:`Policy.compute_loss` ``(batch, generator) -> (loss, parts)``
   with ``parts = {"dp": regression, "sobolev": term}``; :meth:`Policy.balance_terms` feeds the Sobolev
-  balance; :func:`sdp_cli.train_step.step` is the one optimisation step (solo and stacked trainers, estimate);
+  balance; :func:`sdp_cli.training.train_step.step` is the one optimisation step (solo and stacked trainers, estimate);
   a family that sets :attr:`Policy.stackable` also gives ``stack(policies)`` and ``draw``/``loss_from``
   (:class:`~sdp_cli.policy.diffusion.StackedDiffusion`);
 - **rollout** (physical units, numpy, batched): after :meth:`Policy.bind` (done by
@@ -73,7 +73,7 @@ class Policy(nn.Module):
     #: plans chunks of ``T_h`` actions from ``(x, u_prev, xi)`` (Algorithm 2: ``predict_chunk``) rather
     #: than one control per state (``act``); rollouts, ``T_a`` options and the estimate follow it
     chunked: ClassVar[bool] = False
-    #: the family can train several runs as one stacked network (:mod:`sdp_cli.train_stack`; ``sdp pipeline
+    #: the family can train several runs as one stacked network (:mod:`sdp_cli.training.train_stack`; ``sdp pipeline
     #: --run --stack``): it then gives ``stack(policies)`` (one module with ``parameters``, ``zero_grad`` and
     #: ``losses(draws)``) and ``draw(batch, generator)``; a family opts in, the others train each run alone
     stackable: ClassVar[bool] = False

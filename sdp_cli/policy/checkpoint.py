@@ -8,7 +8,7 @@ torch thread count, CUDA device), ``device``,
 ``epoch``, ``step``, ``total_steps``, ``finished``, ``model`` (weights + normalizer buffers),
 ``ema_model`` (same keys, EMA weights) and ``train_state`` (optimizer, LR schedule, EMA
 internals, RNG state) for ``--resume``. No clock readings (same seed, same bytes): the
-training wall time is in the run folder's timing sidecar (see :mod:`sdp_cli.train`).
+training wall time is in the run folder's timing sidecar (see :mod:`sdp_cli.training.train`).
 
 Format versions: 2 stores ``config`` as :meth:`TrainConfig.to_dict` (sections ``policy``, ``data``, ``optim``,
 ``sobolev``); 1 stored one flat dict with older names (``T_h``, ``K``, ``alpha_sobolev``, ...).

@@ -80,7 +80,7 @@ class DiffusionUnetPolicy(Policy):
     """
 
     chunked = True
-    stackable = True    # sdp_cli.train_stack trains several runs of this family as one stacked U-Net
+    stackable = True    # sdp_cli.training.train_stack trains several runs of this family as one stacked U-Net
     compilable = True   # TrainConfig.compile: the U-Net's forward and tangent pass (compile_network)
 
     def __init__(self, config: TrainConfig, dims: dict):
@@ -331,7 +331,7 @@ class DiffusionUnetPolicy(Policy):
 class StackedDiffusion:
     """R diffusion policies of one architecture as one stacked U-Net (:mod:`sdp_cli.policy.unet`,
     ``members=R``): each policy's U-Net weights become views into the stack's, so its optimiser, EMA and
-    checkpoint stay its own (:mod:`sdp_cli.train_stack`). :meth:`losses` is every member's
+    checkpoint stay its own (:mod:`sdp_cli.training.train_stack`). :meth:`losses` is every member's
     :meth:`~DiffusionUnetPolicy.loss_from` of its own :meth:`~DiffusionUnetPolicy.draw` through one call of the
     stacked network (one per Sobolev projection), members with fewer samples padded with zero rows that stay out
     of their losses."""

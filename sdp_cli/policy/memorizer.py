@@ -3,7 +3,7 @@
 :class:`MemorizerPolicy` holds every chunk of a dataset (:class:`sdp_cli.data.chunks.ChunkDataset`, the
 samples a diffusion policy trains on) and answers ``predict_chunk(xi, x, u_prev)`` with the chunk whose
 condition ``(x_t, u_{t-1}, xi)`` is nearest (Euclidean, each coordinate scaled by its spread over the
-data). Rolled out by :func:`sdp_cli.rollout.rollout_policy` on its own training instances, it must
+data). Rolled out by :func:`sdp_cli.algorithm.rollout.rollout_policy` on its own training instances, it must
 reproduce their TO cost: if it does not, no learner can, and the experiment (chunk sampling, rollout
 conventions, the task) measures itself rather than the method. ``sdp check-task`` and
 ``tests/test_memorizer.py`` run it.
@@ -22,7 +22,7 @@ class MemorizerPolicy(ChunkPlanning):
     """Nearest-neighbour lookup of training chunks ``(N S, T_h, A)`` (unnormalized).
 
     A chunked planner (:class:`~sdp_cli.policy.base.ChunkPlanning`: ``plan``, ``max_t_a``, ``sampler_options``
-    from ``T_h``, ``T_o``, ``K = 1`` and ``predict_chunk``): what :func:`sdp_cli.rollout.rollout_policy` uses."""
+    from ``T_h``, ``T_o``, ``K = 1`` and ``predict_chunk``): what :func:`sdp_cli.algorithm.rollout.rollout_policy` uses."""
 
     K = 1
 

@@ -9,7 +9,7 @@ Conv1d -> GroupNorm -> Mish twice; the down path halves the time axis between le
 ``T_h`` must be divisible by ``2^(len(down_dims) - 1)``.
 
 **Stacked (``members=R > 1``)**: R independent U-Nets of one architecture in one module, the training of R runs
-at once (:mod:`sdp_cli.train_stack`): the paper's U-Net is tiny, so a step is mostly per-op overhead and R
+at once (:mod:`sdp_cli.training.train_stack`): the paper's U-Net is tiny, so a step is mostly per-op overhead and R
 networks stacked cost little more than one. The same layers and the same code, with every layer R-fold:
 convolutions grouped (``groups=R``: member ``r``'s channels are the block ``[r C, (r + 1) C)``), GroupNorm over
 ``R x n_groups`` groups (a member's groups never mix with another's), linear layers batched

@@ -5,7 +5,7 @@ A report drawn while runs go on (or after some were left out for lack of time) s
 instead of letting a figure pass for the whole experiment, and a complete one says that it is; finished
 runs of an older results version than the code's (:data:`sdp_cli.RESULTS_VERSION`, the rows'
 ``results_version``) are counted apart, and partway ones name their version: they are still to be
-re-made. Reads the experiment file only (:mod:`sdp_cli.experiment`), never the runs' folders: the rows
+re-made. Reads the experiment file only (:mod:`sdp_cli.experiments.experiment`), never the runs' folders: the rows
 given are what the report drew.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli import RESULTS_VERSION
-from sdp_cli.experiment import check_group, group_items, group_run_names, load_experiment
+from sdp_cli.experiments.experiment import check_group, group_items, group_run_names, load_experiment
 
 #: partway runs named per group before "and N more"
 MAX_NAMED = 6

@@ -2,7 +2,7 @@
 
 The reports and the ledger give the hours of runs that were not made from these files (the issue's "mark the
 rest 'not run' with their --estimate hours"), instead of re-calibrating (which trains for a minute and moves
-with the machine's load). The table is the one :func:`sdp_cli.estimate.format_estimate` prints.
+with the machine's load). The table is the one :func:`sdp_cli.experiments.estimate.format_estimate` prints.
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str
     everything: ``sdp loop`` folders, another experiment's runs)."""
     import yaml
 
-    from sdp_cli.experiment import load_experiment, run_names
+    from sdp_cli.experiments.experiment import load_experiment, run_names
 
     if not params.is_file():
         return None

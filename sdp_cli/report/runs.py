@@ -1,7 +1,7 @@
 """Gather the evaluation rows of every run under a folder into one tidy table.
 
 Evaluations are found through their manifests (``*.manifest.json``, written next to each
-``eval.csv`` by ``sdp evaluate`` and ``sdp loop``; :mod:`sdp_cli.evaluate`), whatever the
+``eval.csv`` by ``sdp evaluate`` and ``sdp loop``; :mod:`sdp_cli.algorithm.evaluate`), whatever the
 folder layout: a DVC experiment or ``sdp loop`` folders, symlinked folders followed. Each row
 gets, from its manifest, ``run``, ``iteration``, ``git_rev`` and the absolute paths of the files it comes from
 (``rollouts``, ``refined``, ``policy``, ``data``), plus ``source`` (the manifest's folder);
@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 
 from sdp_cli.errors import SdpError
-from sdp_cli.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, files_named, read_evaluation, read_manifest
+from sdp_cli.algorithm.evaluate import ARTIFACT_KEYS, MANIFEST_SUFFIX, files_named, read_evaluation, read_manifest
 from sdp_cli.migrate import outdated
 
 #: columns load_runs adds that hold paths on this machine (never written to committed tables)

@@ -40,7 +40,7 @@ def _last_iterations(d: pd.DataFrame) -> pd.DataFrame:
 def _outcome(task, r: dict, j: int) -> str:
     """Rollout ``j``'s outcome in a few words: "goal" / "miss", then the constraint groups it breaks
     (beyond the evaluation's tolerance), e.g. "miss, breaks obstacles"."""
-    from sdp_cli.evaluate import VIOLATION_TOL
+    from sdp_cli.algorithm.evaluate import VIOLATION_TOL
 
     viol = task.violations_per_instance(r["X"][j:j + 1], r["U"][j:j + 1], r["xi"][j:j + 1])
     broken = [g for g, v in viol.items() if not v[0] <= VIOLATION_TOL]
@@ -49,7 +49,7 @@ def _outcome(task, r: dict, j: int) -> str:
 
 def _shares(r: dict, meta: dict) -> str:
     """Over all test instances: the share reaching the goal, and breaking each constraint group that any breaks."""
-    from sdp_cli.evaluate import group_violation_rates
+    from sdp_cli.algorithm.evaluate import group_violation_rates
 
     rates = {k[:-len("_violation_rate")]: v for k, v in group_violation_rates(r, meta).items() if v > 0}
     return f"goal {np.mean(r['reached']):.0%}" + "".join(f", breaks {g} {v:.0%}" for g, v in rates.items())

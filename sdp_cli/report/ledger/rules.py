@@ -326,7 +326,7 @@ def _fig3_not_run(d: pd.DataFrame, loops: tuple, est: pd.DataFrame | None = None
 
 def _loop_hours(est: pd.DataFrame | None, d: pd.DataFrame, task: str, h: int, t_a: int) -> str:
     """``" 7.5 h"``: the estimated hours of loop ``(task, h, t_a)``'s runs without a row in ``d``
-    (run names end in ``-h<T_h>-ta<T_a>``, :func:`sdp_cli.experiment.group_run_names`); ``""`` without."""
+    (run names end in ``-h<T_h>-ta<T_a>``, :func:`sdp_cli.experiments.experiment.group_run_names`); ``""`` without."""
     if est is None or est.empty:
         return ""
     mine = est[(est.task == task) & est.run.str.endswith(f"-h{h}-ta{t_a}") & ~est.run.isin(set(d.get("run", ())))]

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from sdp_cli.families import DEFAULT_TO
-from sdp_cli.argmin import policy_outcomes
+from sdp_cli.algorithm.argmin import policy_outcomes
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
 from sdp_cli.errors import SdpError

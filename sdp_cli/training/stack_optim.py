@@ -1,4 +1,4 @@
-"""Every member's gradient clipping, AdamW step and EMA update of a stack (:class:`sdp_cli.train_step.Stack`) in a
+"""Every member's gradient clipping, AdamW step and EMA update of a stack (:class:`sdp_cli.training.train_step.Stack`) in a
 few whole-stack operations.
 
 A solo run's optimisation touches its ~200 parameter tensors one by one (``clip_grad_norm_``, AdamW with
@@ -28,7 +28,7 @@ except ImportError:   # pragma: no cover - older torch
 
 
 class StackedOptimisation:
-    """Clipping, AdamW and EMA of the members (``runs``, :class:`sdp_cli.train.Run`) of one stacked network whose
+    """Clipping, AdamW and EMA of the members (``runs``, :class:`sdp_cli.training.train.Run`) of one stacked network whose
     parameters are ``stacked`` (each ``(R, ...)`` or ``(R * c, ...)``, member ``r``'s block the ``r``-th of R),
     in the order of every member's ``policy.parameters()``."""
 

@@ -183,7 +183,7 @@ def _restore(prev: dict, policy, opt, sched, ema, gen, dev, ck_path: Path, out: 
 class Run:
     """One training run's state between steps: config, policy, data tensors, optimisation, metrics and step
     counter, with its checkpoints (:meth:`save`). :func:`drive` steps one alone (:func:`train`) or several as one
-    stack (:mod:`sdp_cli.train_stack`) with the same objects and the same step (:func:`sdp_cli.train_step.step`),
+    stack (:mod:`sdp_cli.training.train_stack`) with the same objects and the same step (:func:`sdp_cli.training.train_step.step`),
     so a stacked run's checkpoints, metrics and resume are a solo run's. :func:`start_run` builds one."""
 
     def __init__(self, **kw):
@@ -311,9 +311,9 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
           init: str | Path | None = None, progress: bool = True, log: Callable[[str], None] = print,
           on_step: Callable[[int], None] | None = None) -> Path:
     """Train and return the path of the final checkpoint (see the module docstring): :func:`start_run`, then
-    :func:`drive` of the run alone (:class:`sdp_cli.train_step.OneRun`) until its last step, checkpointing on
+    :func:`drive` of the run alone (:class:`sdp_cli.training.train_step.OneRun`) until its last step, checkpointing on
     Ctrl-C / SIGTERM at a step boundary."""
-    from sdp_cli.train_step import OneRun
+    from sdp_cli.training.train_step import OneRun
 
     run = start_run(data, out, cfg, device, resume, init)
     log(run.describe())
@@ -335,7 +335,7 @@ def train(data: str | Path, out: str | Path, cfg: TrainConfig, device: str = "au
 def drive(group, on_step: Callable[[int], None] | None = None,
           on_row: Callable[[Run, dict], None] | None = None, regroup: Callable[[list], object] | None = None,
           failed: dict | None = None) -> None:
-    """Step the runs of ``group`` (:mod:`sdp_cli.train_step`: one run alone or a stack) until every one is done,
+    """Step the runs of ``group`` (:mod:`sdp_cli.training.train_step`: one run alone or a stack) until every one is done,
     recording each run's metrics and checkpoints; ``on_step(step)`` after each step (the furthest run's step),
     ``on_row(run, row)`` after each run's metrics row. Ctrl-C / SIGTERM saves every run at a step boundary; a
     fresh run that fails before its first checkpoint leaves no folder; each run's final checkpoint at the end.
@@ -343,8 +343,8 @@ def drive(group, on_step: Callable[[int], None] | None = None,
     ``regroup`` (a stack): a run whose loss diverges leaves the group, ``failed[run.out]`` says why (its folder
     keeps its last checkpoint, or goes if it has none and this call made it), and the others go on in
     ``regroup(their runs)``; without it a divergence stops every run."""
-    from sdp_cli.interrupts import deferred
-    from sdp_cli.train_step import Diverged, step
+    from sdp_cli.execution.interrupts import deferred
+    from sdp_cli.training.train_step import Diverged, step
 
     runs = list(group.runs)
     for run in runs:

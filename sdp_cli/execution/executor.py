@@ -1,6 +1,6 @@
 """Where independent jobs run: in-process, a local process pool, or a Dask cluster.
 
-    from sdp_cli.executor import make_executor
+    from sdp_cli.execution.executor import make_executor
     with make_executor("local", workers=4) as ex:            # or "dask", scheduler="tcp://host:8786"
         ex.warm(build_solver, "pendulum", {}, 1000)           # once per worker process
         futs = {ex.submit(fn, *args): i for i, args in enumerate(argsets)}
@@ -42,7 +42,7 @@ from concurrent.futures import wait as _cf_wait
 from concurrent.futures.process import BrokenProcessPool
 
 from sdp_cli.errors import SdpError
-from sdp_cli.executor_base import Executor, Outcome, error_status  # noqa: F401 (re-exported)
+from sdp_cli.execution.executor_base import Executor, Outcome, error_status  # noqa: F401 (re-exported)
 
 KINDS = ("local", "dask")
 
@@ -117,7 +117,7 @@ class PoolExecutor(Executor):
                                "crash in the solver?); finished results are kept, re-run to resume")
         if self._pool is None:
             ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-            from sdp_cli.workers import worker_init
+            from sdp_cli.execution.workers import worker_init
 
             self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=worker_init,
                                              initargs=(os.getpid(),))
@@ -153,7 +153,7 @@ class PoolExecutor(Executor):
             # Ctrl-C: the workers ignore SIGINT (no tracebacks from each of them); stop them now instead of
             # waiting for their solves (SIGTERM: a solve dies at once, its result was not persisted and a re-run
             # redoes it; a training job writes its checkpoint at the next step boundary and exits,
-            # sdp_cli.interrupts), and wait for them so that no worker outlives this process.
+            # sdp_cli.execution.interrupts), and wait for them so that no worker outlives this process.
             procs = list(getattr(self._pool, "_processes", {}).values())
             for p in procs:
                 p.terminate()
@@ -199,7 +199,7 @@ def make_executor(kind: str | None = "local", workers: int | None = None, schedu
     """
     kind = check_executor_options(kind, workers, scheduler)
     if kind == "dask":
-        from sdp_cli.executor_dask import DaskExecutor
+        from sdp_cli.execution.executor_dask import DaskExecutor
 
         return DaskExecutor(workers, scheduler, **dask_options)
     workers = max(1, workers or os.cpu_count() or 1)

@@ -1,6 +1,6 @@
 """Experiment files (``pipelines/<name>.yaml``): reading them and naming their runs.
 
-The format and what runs them are described in :mod:`sdp_cli.pipeline`; this module is what
+The format and what runs them are described in :mod:`sdp_cli.experiments.pipeline`; this module is what
 ``sdp report`` needs (no training, optimizer or policy code), so a report does not depend on them.
 """
 
@@ -12,10 +12,10 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig, group_keys
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, LoopRolloutConfig, group_keys
 
 PIPELINES_DIR = Path("pipelines")
-#: the group keys that are not loop options (those come from the fields of sdp_cli.loop_options: below): what a
+#: the group keys that are not loop options (those come from the fields of sdp_cli.algorithm.loop_options: below): what a
 #: group sweeps (methods x seeds x n_traj) and names, and the training options of its runs
 _GROUP_OWN = {"task": ("str", None), "methods": ("[str]", ["sdp"]), "seeds": ("[int]", [0]),
               "n_traj": ("[int]", [30]), "epochs": ("int", 1000), "save_at": ("[int]", []),
@@ -77,7 +77,7 @@ def group_where(name: str, gi: int) -> str:
 
 def check_group(name: str, gi: int, raw: dict) -> dict:
     """Group ``gi`` of experiment ``name`` with the defaults filled in (``SdpError`` on unknown keys;
-    the ``train:`` options are checked by :func:`sdp_cli.pipeline.loop_configs`)."""
+    the ``train:`` options are checked by :func:`sdp_cli.experiments.pipeline.loop_configs`)."""
     where = group_where(name, gi)
     if not isinstance(raw, dict):
         raise SdpError(f"{where}: expected a mapping, got {raw!r}")

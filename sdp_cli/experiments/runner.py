@@ -1,10 +1,10 @@
 """The runs of an experiment in parallel: ``sdp pipeline NAME --run``.
 
 Every run of ``pipelines/NAME.yaml`` (one per group x method x seed x n_traj) is one
-``sdp loop`` (:func:`sdp_cli.loop.run_loop`) in ``OUT/<task>-<method>-n<n_traj>-s<seed>/``:
+``sdp loop`` (:func:`sdp_cli.algorithm.loop.run_loop`) in ``OUT/<task>-<method>-n<n_traj>-s<seed>/``:
 collect, train, evaluate, for each iteration, with the collection seeds of the DVC stages
 (``1000 * seed + k``) and the ``save_at`` epochs evaluated from the same training. The runs
-are independent, so they are jobs of an executor (:mod:`sdp_cli.executor`):
+are independent, so they are jobs of an executor (:mod:`sdp_cli.execution.executor`):
 
 - ``local``: a pool of ``workers`` processes, one torch thread each (inside a run the solves
   run serially: the parallelism is across runs);
@@ -50,8 +50,8 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
     """One run, in a worker process: ``sdp loop`` with one torch thread; its summary rows."""
     import torch
 
-    from sdp_cli.loop import LoopConfig, run_loop
-    from sdp_cli.train import resolve_device
+    from sdp_cli.algorithm.loop import LoopConfig, run_loop
+    from sdp_cli.training.train import resolve_device
 
     torch.set_num_threads(1)
     name = Path(out).name
@@ -70,16 +70,16 @@ def run_job(config: dict, out: str, device: str = "auto") -> list[dict]:
 def run_stack_job(configs: list[dict], outs: list[str], device: str = "auto") -> dict[str, list[dict]]:
     """Compatible runs (:func:`pack`) in lockstep, in a worker process: at each iteration of Algorithm 1, each run's
     collection (warm-started by its own previous policy) and buffer, then their training as one stack
-    (:func:`sdp_cli.train_stack.train_stack`, each warm-started from its own previous policy); then each run's
+    (:func:`sdp_cli.training.train_stack.train_stack`, each warm-started from its own previous policy); then each run's
     evaluations (``sdp loop``, which finds the data and the finished policies of every iteration);
     ``{run: summary rows}``. Every run keeps its own datasets, seeds, checkpoints and numbers, and a killed job
     resumes where it stopped (the datasets and checkpoints that exist are kept)."""
     import torch
 
-    from sdp_cli.executor import error_status
-    from sdp_cli.loop import LoopConfig, begin_loop, iteration_data, run_loop, train_done
-    from sdp_cli.train import resolve_device
-    from sdp_cli.train_stack import train_stack
+    from sdp_cli.execution.executor import error_status
+    from sdp_cli.algorithm.loop import LoopConfig, begin_loop, iteration_data, run_loop, train_done
+    from sdp_cli.training.train import resolve_device
+    from sdp_cli.training.train_stack import train_stack
 
     torch.set_num_threads(1)
     cfgs = [LoopConfig.from_dict(c, device=str(resolve_device(device))) for c in configs]
@@ -137,7 +137,7 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 
 def pack(runs: dict, stack: int) -> list[list[str]]:
     """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): runs of a stackable,
-    compatible training config (:func:`sdp_cli.train_stack.stack_key`), of one number of iterations, buffer rule
+    compatible training config (:func:`sdp_cli.training.train_stack.stack_key`), of one number of iterations, buffer rule
     and dataset sizes at every iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
     split into near-equal stacks, in the experiment's order), trained in lockstep (:func:`run_stack_job`: each
     iteration's collections, then one stacked training); every other run is a job of its own. One size per stack:
@@ -145,7 +145,7 @@ def pack(runs: dict, stack: int) -> list[list[str]]:
     1.25-1.35x the time on padding rows (``bench/stack_packing.py``). Stacks first, the larger datasets first
     within a training config (the longest jobs start first), then the runs alone; the same experiment gives the
     same jobs on every machine."""
-    from sdp_cli.train_stack import stack_key, stackable
+    from sdp_cli.training.train_stack import stack_key, stackable
 
     groups: dict = {}
     alone: list[list[str]] = []
@@ -199,11 +199,11 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     (:data:`sdp_cli.RESULTS_VERSION`) is moved aside (:func:`supersede`, never deleted) and the run
     starts over; otherwise other settings are refused before anything runs and another results version
     is resumed. ``job``: the per-run function (tests substitute one that kills its worker once). ``stack``: runs
-    per stack of compatible runs (:func:`pack`; default :data:`sdp_cli.train_stack.DEFAULT_STACK`,
+    per stack of compatible runs (:func:`pack`; default :data:`sdp_cli.training.train_stack.DEFAULT_STACK`,
     1: every run alone)."""
-    from sdp_cli.executor import check_executor_options
-    from sdp_cli.experiment import load_experiment
-    from sdp_cli.pipeline import loop_configs
+    from sdp_cli.execution.executor import check_executor_options
+    from sdp_cli.experiments.experiment import load_experiment
+    from sdp_cli.experiments.pipeline import loop_configs
 
     executor, workers, scheduler = executor_options(executor, workers, scheduler)
     check_executor_options(executor, workers, scheduler)
@@ -271,8 +271,8 @@ def runner_lock(out: Path):
 
 
 def _run_group(name, runs, out, executor, workers, scheduler, device, only, restart_changed, log, job, stack=None):
-    from sdp_cli.executor import error_status, make_executor
-    from sdp_cli.loop import check_resume
+    from sdp_cli.execution.executor import error_status, make_executor
+    from sdp_cli.algorithm.loop import check_resume
     from sdp_cli.progress import count_progress
 
     if only:   # names checked by run_group
@@ -289,7 +289,7 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
                 f"to {moved} and starting it over")
     import functools
 
-    from sdp_cli.train_stack import DEFAULT_STACK
+    from sdp_cli.training.train_stack import DEFAULT_STACK
 
     jobs = pack(runs, DEFAULT_STACK if stack is None else stack)
     argsets = [([runs[k].to_dict() for k in job_keys], [str(out / k) for k in job_keys], device) for job_keys in jobs]
@@ -355,10 +355,10 @@ def run_status(name: str, out: str | os.PathLike, root: Path = Path(".")) -> pd.
     ``run``, ``iterations`` (evaluated iterations / n_algo), ``state`` (done: its summary is written;
     in progress: a folder with work in it; not started; other settings: the folder holds a run made
     with other settings, which ``--run`` refuses and ``--restart-changed`` starts over)."""
-    from sdp_cli.evaluate import manifest_path
-    from sdp_cli.experiment import load_experiment
-    from sdp_cli.loop import check_resume
-    from sdp_cli.pipeline import loop_configs
+    from sdp_cli.algorithm.evaluate import manifest_path
+    from sdp_cli.experiments.experiment import load_experiment
+    from sdp_cli.algorithm.loop import check_resume
+    from sdp_cli.experiments.pipeline import loop_configs
 
     rows = []
     for key, cfg in loop_configs(name, load_experiment(name, root)).items():

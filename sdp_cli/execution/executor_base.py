@@ -1,5 +1,5 @@
 """The executor interface (:class:`Executor`, :class:`Outcome`) shared by the local backends
-(:mod:`sdp_cli.executor`) and the Dask one (:mod:`sdp_cli.executor_dask`)."""
+(:mod:`sdp_cli.execution.executor`) and the Dask one (:mod:`sdp_cli.execution.executor_dask`)."""
 
 from __future__ import annotations
 

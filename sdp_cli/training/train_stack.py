@@ -1,9 +1,9 @@
 """Many runs at once: train R compatible runs of a stackable family as one stacked network (``sdp pipeline --run``).
 
 The paper's U-Net is tiny, so a step of one run is mostly per-op overhead; R runs stacked as one network cost
-little more than one (``bench/stacked_train.py``). The step is the solo trainer's (:func:`sdp_cli.train_step.step`
-with a :class:`sdp_cli.train_step.Stack`), and everything else of a run stays its own and is the solo trainer's
-(:class:`sdp_cli.train.Run`): dataset, epoch order, random stream (the family's ``draw``, in a solo run's order),
+little more than one (``bench/stacked_train.py``). The step is the solo trainer's (:func:`sdp_cli.training.train_step.step`
+with a :class:`sdp_cli.training.train_step.Stack`), and everything else of a run stays its own and is the solo trainer's
+(:class:`sdp_cli.training.train.Run`): dataset, epoch order, random stream (the family's ``draw``, in a solo run's order),
 normalizer and Sobolev scale, AdamW state, LR schedule, EMA, gradient clipping, ``save_at`` checkpoints, metrics
 and checkpoints; a member's checkpoint is a solo checkpoint (``load_policy``, ``sdp train --resume``), and a
 killed stack resumes every member.
@@ -25,7 +25,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes on every machine
-#: with torch's CPU kernels capped: sdp_cli/kernels.py)
+#: with torch's CPU kernels capped: sdp_cli/execution/kernels.py)
 DEFAULT_STACK = 8
 
 
@@ -50,9 +50,9 @@ def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = 
     checkpoints. ``inits``: per run, a checkpoint to start from (``sdp train --init``: a loop's warm start) or
     None. ``failed``: a dict that collects ``{run folder: why}`` of runs whose loss diverged, which leave the
     stack while the others train on (their checkpoints are returned); without it a divergence stops the stack.
-    One run alone is a stack of one (the solo trainer is :func:`sdp_cli.train.train`)."""
-    from sdp_cli.train import drive, start_run
-    from sdp_cli.train_step import Stack
+    One run alone is a stack of one (the solo trainer is :func:`sdp_cli.training.train.train`)."""
+    from sdp_cli.training.train import drive, start_run
+    from sdp_cli.training.train_step import Stack
 
     if not cfgs:
         return []

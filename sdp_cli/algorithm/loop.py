@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from sdp_cli.loop_options import LoopAlgorithmOptions, LoopRolloutConfig  # (re-exported: sdp_cli.loop.*)
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, LoopRolloutConfig  # (re-exported: sdp_cli.algorithm.loop.*)
 from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, save_npz
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import rule
@@ -41,7 +41,7 @@ from sdp_cli.policy.config import TrainConfig, flat_options
 @dataclass(frozen=True)
 class LoopConfig(LoopAlgorithmOptions):
     """One run of Algorithm 1: its task, the typed training config (:class:`TrainConfig`: method, epochs,
-    seed, architecture, ...), Algorithm 1's own options (:class:`~sdp_cli.loop_options.LoopAlgorithmOptions`:
+    seed, architecture, ...), Algorithm 1's own options (:class:`~sdp_cli.algorithm.loop_options.LoopAlgorithmOptions`:
     ``n_algo``, ``reset_buffer``, ``max_iter``, ``to``, keyword-only), the rollout settings
     (:class:`LoopRolloutConfig`) and where the work runs."""
 
@@ -51,7 +51,7 @@ class LoopConfig(LoopAlgorithmOptions):
     n_traj: tuple = field(default=(30,), metadata=rule(ge=1))  # per iteration; the last value repeats
     workers: int | None = None
     device: str = "cpu"
-    executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.executor)
+    executor: str | None = None    # where collect/refine solves run: local or dask (sdp_cli.execution.executor)
     scheduler: str | None = None   # address of a running Dask scheduler
 
     def __post_init__(self):
@@ -62,7 +62,7 @@ class LoopConfig(LoopAlgorithmOptions):
         check_loop_seed(self.seed, "seed", self.n_algo)
         if not self.n_traj:
             raise SdpError("n_traj must be positive integers, got []")
-        from sdp_cli.executor import check_executor_options
+        from sdp_cli.execution.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)
         self.validate()
@@ -238,10 +238,10 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
                        log: Callable[[str], None], last: bool = False, progress: bool = False) -> pd.DataFrame:
     """Rollout + refine + evaluate the policy on the fixed test set, for each eval T_a
     (without refine when ``cfg.rollout.eval_refine`` is off: the policy's own metrics only)."""
-    from sdp_cli.evaluate import evaluation_artifacts, evaluation_row, write_evaluation
+    from sdp_cli.algorithm.evaluate import evaluation_artifacts, evaluation_row, write_evaluation
     from sdp_cli.progress import count_progress
-    from sdp_cli.refine import refine
-    from sdp_cli.rollout import RolloutConfig, rollout
+    from sdp_cli.algorithm.refine import refine
+    from sdp_cli.algorithm.rollout import RolloutConfig, rollout
 
     import time
 
@@ -304,7 +304,7 @@ def collect_iteration(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | No
                       log: Callable[[str], None] = print, progress: bool = False) -> Path:
     """Iteration ``k``'s dataset ``out/it<k>/data.npz`` (collected unless it exists): the naive-guess TO at
     ``k = 0``, then TO warm-started by ``prev_policy``'s rollouts with ArgminCost."""
-    from sdp_cli.collect import CollectConfig, collect, policy_fingerprint
+    from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
 
     data = out / f"it{k}" / "data.npz"
     if not data.exists():
@@ -342,8 +342,8 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
     """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
     ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
     from sdp_cli import RESULTS_VERSION
-    from sdp_cli.evaluate import is_timing_column
-    from sdp_cli.train import train
+    from sdp_cli.algorithm.evaluate import is_timing_column
+    from sdp_cli.training.train import train
 
     out = begin_loop(cfg, out)
     tables, prev_policy = [], None

@@ -1,4 +1,4 @@
-"""The Dask backend of :mod:`sdp_cli.executor` (``--executor dask``, ``--scheduler ADDR``): jobs as
+"""The Dask backend of :mod:`sdp_cli.execution.executor` (``--executor dask``, ``--scheduler ADDR``): jobs as
 ``dask.distributed`` tasks; the failure semantics are the executor module's."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import time
 from typing import Callable, Iterable
 
 from sdp_cli.errors import SdpError
-from sdp_cli.executor_base import Executor, Outcome, error_status
+from sdp_cli.execution.executor_base import Executor, Outcome, error_status
 
 def _probe() -> dict:
     """Run on every Dask worker: can it import sdp, and which version."""

@@ -16,19 +16,19 @@ An experiment file lists *groups*; each group is a sweep::
         t_a: 8                 # T_a of the warm-starting rollouts
         eval_t_a: [8]          # T_a values evaluated on the test set at every iteration
         eval_t_a_last: [1, 4]  # extra T_a values evaluated at the last iteration only (Table 2c)
-        n_test: 50             # every rollout/evaluation option of `sdp loop` is a key (sdp_cli.loop_options):
+        n_test: 50             # every rollout/evaluation option of `sdp loop` is a key (sdp_cli.algorithm.loop_options):
         eval_refine: true      #   t_a, eval_t_a, eval_t_a_last, k_rollout, conversion, n_test, test_seed,
                                #   single_shooting, eval_refine
         train: {batch_size: 256, sobolev_alpha: 1.0}   # optional: any other training option (`sdp train --help`)
         tag: h16               # optional: appended to the run names (groups that differ only in settings)
 
 Every (group, method, seed, n_traj) is one *run*: one ``sdp loop``, Algorithm 1 as
-:func:`sdp_cli.loop.run_loop` implements it (the one implementation, used by ``sdp loop``,
+:func:`sdp_cli.algorithm.loop.run_loop` implements it (the one implementation, used by ``sdp loop``,
 ``sdp pipeline NAME --run`` and DVC alike), in ``runs/<name>/<task>-<method>-n<n_traj>-s<seed>[-<tag>]/``
 (:func:`loop_configs`). ``sdp pipeline NAME`` writes ``experiment: NAME`` and one ``group``
 entry into ``params.yaml``; ``dvc repro`` then runs the DVC stage ``group``, which runs every run
 of the experiment in parallel through the executor of ``SDP_EXECUTOR``/``SDP_WORKERS``/
-``SDP_SCHEDULER`` (:mod:`sdp_cli.runner`), with a persistent output so that an interrupted
+``SDP_SCHEDULER`` (:mod:`sdp_cli.experiments.runner`), with a persistent output so that an interrupted
 ``dvc repro`` resumes the runs instead of deleting them, and then the ``report`` stage.
 """
 
@@ -40,7 +40,7 @@ from pathlib import Path
 import yaml
 
 from sdp_cli.errors import SdpError
-from sdp_cli.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
+from sdp_cli.experiments.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
 
 #: training options a group sets with its own keys (a sweep: ``methods``, ``seeds``; or the group-level
 #: ``epochs``, ``horizon``, ``save_at``, of the same names); ``train:`` may set every other one
@@ -56,17 +56,17 @@ def train_option_names() -> set[str]:
 
 
 def train_option_type(name: str) -> str:
-    """The :func:`sdp_cli.experiment.type_ok` spec of a training option, from its field's annotation."""
+    """The :func:`sdp_cli.experiments.experiment.type_ok` spec of a training option, from its field's annotation."""
     from sdp_cli.policy.config import option_type
 
     base, item, optional = option_type(name)
     return (f"[{item.__name__}]" if item is not None else base.__name__) + ("?" if optional else "")
 
 
-def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F821 (sdp_cli.loop.LoopConfig)
+def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F821 (sdp_cli.algorithm.loop.LoopConfig)
     """``{run name: LoopConfig}`` of every run of an experiment, each validated (task, method,
     options, T_a) before anything runs; an error names the file, the group and the key."""
-    from sdp_cli.experiment import describe_type
+    from sdp_cli.experiments.experiment import describe_type
 
     runs = {}
     for gi, raw in group_items(spec):
@@ -95,8 +95,8 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
 
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
-    from sdp_cli.loop import LoopConfig
-    from sdp_cli.loop_options import LoopAlgorithmOptions, from_group
+    from sdp_cli.algorithm.loop import LoopConfig
+    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, from_group
     from sdp_cli.policy.config import TrainConfig
     from sdp_cli.seeds import check_loop_seed
 
@@ -104,7 +104,7 @@ def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig": 
 
     train = TrainConfig.of(**{**(g["train"] or {}), "method": method, "epochs": g["epochs"], "seed": seed,
                               "horizon": g["horizon"], "save_at": [int(e) for e in g["save_at"] if e < g["epochs"]]})
-    rollout = from_group(g)   # every loop option is a group key (sdp_cli.loop_options)
+    rollout = from_group(g)   # every loop option is a group key (sdp_cli.algorithm.loop_options)
     return LoopConfig(task=g["task"], train=train, rollout=rollout, **from_group(g, LoopAlgorithmOptions),
                       n_traj=tuple(int(n) for n in (g["n_traj_schedule"] or [n_traj])), workers=1, device="cpu")
 

@@ -15,7 +15,7 @@ def worker_init(parent: int | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     # Ctrl-C reaches the whole foreground process group: the parent handles it (and stops the pool), so a
     # worker ignores it instead of printing its own KeyboardInterrupt traceback. Training inside a worker
-    # (`sdp pipeline --run`) installs its own handler (sdp_cli.interrupts) and checkpoints at a step boundary.
+    # (`sdp pipeline --run`) installs its own handler (sdp_cli.execution.interrupts) and checkpoints at a step boundary.
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)

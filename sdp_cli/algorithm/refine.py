@@ -17,10 +17,10 @@ from typing import Callable
 import numpy as np
 
 from sdp_cli.families import DEFAULT_TO
-from sdp_cli.argmin import (TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost,  # noqa: F401 (re-exported)
+from sdp_cli.algorithm.argmin import (TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost,  # noqa: F401 (re-exported)
                             policy_outcomes)
 from sdp_cli.data.artifacts import file_sha256, load_npz, save_npz, split_timing
-from sdp_cli.solve_jobs import (RESULT_KEYS, SS_KEYS, failed_record, instance_arrays, job_chunks,  # noqa: F401
+from sdp_cli.algorithm.solve_jobs import (RESULT_KEYS, SS_KEYS, failed_record, instance_arrays, job_chunks,  # noqa: F401
                                 refine_instance, refine_instances, usable_guess, warm_solver)
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
@@ -46,10 +46,10 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     """Refine every rollout of an artifact; write a dataset artifact to ``out``.
 
     ``progress(done, n)`` is called after each instance. ``executor``/``workers``/``scheduler``: where the solves run, as for ``sdp collect``
-    (:func:`sdp_cli.executor.make_executor`, or an open executor, not closed here). A job
+    (:func:`sdp_cli.execution.executor.make_executor`, or an open executor, not closed here). A job
     that raises counts as an instance where nothing converged.
     """
-    from sdp_cli.executor import Executor, check_executor_options, error_status, make_executor
+    from sdp_cli.execution.executor import Executor, check_executor_options, error_status, make_executor
 
     arrays, meta = load_npz(rollouts, kind="rollout")
     for k in ("X", "U", "xi"):

@@ -1,7 +1,7 @@
 """The per-instance solve jobs of Algorithm 1 (lines 5-8), shared by ``sdp collect`` and ``sdp refine``.
 
 Each job is a module-level function of small, picklable arguments that returns a dict of
-arrays, so that any executor (:mod:`sdp_cli.executor`) can run it: :func:`solve_index`
+arrays, so that any executor (:mod:`sdp_cli.execution.executor`) can run it: :func:`solve_index`
 (TO from the naive guess, line 5), :func:`refine_instance` (TO from the policy's rollout and
 from the naive guess, kept by :func:`argmin_cost`, lines 6-8), :func:`refine_indices` (the same for several
 instances, labelled with their sample indices, for ``sdp collect --policy``), and :func:`solve_indices` /
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from sdp_cli.families import DEFAULT_TO
-from sdp_cli.argmin import TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes  # noqa: F401
+from sdp_cli.algorithm.argmin import TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes  # noqa: F401
 from sdp_cli.tasks import Task, get_task
 
 RESULT_KEYS = ("X", "U", "K", "A", "B", "Phi", "cost", "iterations", "solve_time", "converged",
@@ -89,7 +89,7 @@ def failed_result(task: Task, index: int, xi: np.ndarray, status: str) -> dict:
 def usable_guess(task, xi: np.ndarray, X: np.ndarray, U: np.ndarray) -> bool:
     """A policy rollout worth warm-starting from: finite, not diverged (states within
     ``DIVERGENCE_STATE``, cost <= ``DIVERGENCE_COST``)."""
-    from sdp_cli.rollout import DIVERGENCE_COST, DIVERGENCE_STATE
+    from sdp_cli.algorithm.rollout import DIVERGENCE_COST, DIVERGENCE_STATE
 
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(U))) or np.abs(X).max() > DIVERGENCE_STATE:
         return False

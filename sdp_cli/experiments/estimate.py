@@ -79,7 +79,7 @@ class TrainStage:
 
 def training_stages(runs: dict) -> list[TrainStage]:
     """One :class:`TrainStage` per run and iteration of an experiment (``{run: LoopConfig}``, from
-    :func:`sdp_cli.pipeline.loop_configs`), with its sizes."""
+    :func:`sdp_cli.experiments.pipeline.loop_configs`), with its sizes."""
     from sdp_cli.data.sampling import steps_per_epoch
     from sdp_cli.tasks import get_task
 
@@ -126,7 +126,7 @@ def _timed_runs(task_name: str, method: str, T_h: int, B: int, R: int, action: s
 
     from sdp_cli.policy.registry import make_policy
     from sdp_cli.tasks import get_task
-    from sdp_cli.train import ema_for, optimizer_for
+    from sdp_cli.training.train import ema_for, optimizer_for
 
     task = get_task(task_name)
     cfg = _config(method, T_h, B, action, train)
@@ -145,9 +145,9 @@ def _timed_runs(task_name: str, method: str, T_h: int, B: int, R: int, action: s
 
 
 def _step_of(group):
-    """One trainer step of ``group`` (:func:`sdp_cli.train_step.step`), its losses read as a metrics row does
+    """One trainer step of ``group`` (:func:`sdp_cli.training.train_step.step`), its losses read as a metrics row does
     (a device sync on CUDA)."""
-    from sdp_cli.train_step import step as train_step
+    from sdp_cli.training.train_step import step as train_step
 
     def step():
         for loss, _, _ in train_step(group):
@@ -158,11 +158,11 @@ def _step_of(group):
 
 def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | None = None, device="cpu",
                  max_s: float = 5.0, train=None, first: list | None = None) -> float:
-    """Measured seconds of one training step (:func:`sdp_cli.train_step.step` of one run: loss, backward,
+    """Measured seconds of one training step (:func:`sdp_cli.training.train_step.step` of one run: loss, backward,
     clipping, AdamW, EMA); median of the steps that fit in ``max_s`` (at least 2, after one warm-up step);
     ``train``: the run's config (else the method's defaults at ``T_h``); ``first``: gets the warm-up step's
     seconds (a compiled config's compile)."""
-    from sdp_cli.train_step import OneRun
+    from sdp_cli.training.train_step import OneRun
 
     (run,) = _timed_runs(task_name, method, T_h, B, 1, action, device, train)
     if run.cfg.compile:      # as the trainer does (its first step compiles: the warm-up, ``first``)
@@ -215,10 +215,10 @@ def _median_seconds(step, max_s: float, device="cpu", first: list | None = None)
 
 def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
                          device="cpu", max_s: float = 5.0, train=None, first: list | None = None) -> float:
-    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.train_step.Stack`, the
+    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.training.train_step.Stack`, the
     trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
     synthetic batches; as :func:`step_seconds` otherwise (the stack compiles itself where the config says so)."""
-    from sdp_cli.train_step import Stack
+    from sdp_cli.training.train_step import Stack
 
     stack = Stack(_timed_runs(task_name, method, T_h, B, R, action, device, train))
     return _median_seconds(_step_of(stack), max_s, device, first)
@@ -250,10 +250,10 @@ def _interp(cal: tuple, B: int) -> float:
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
              root: Path = Path("."), stack: int | None = None) -> tuple[pd.DataFrame, dict]:
     """Per-run estimate of experiment ``name`` and the totals (see the module docstring). Runs that
-    ``sdp pipeline --run`` trains as one stack (``stack`` runs at most, :func:`sdp_cli.runner.pack`) share
+    ``sdp pipeline --run`` trains as one stack (``stack`` runs at most, :func:`sdp_cli.experiments.runner.pack`) share
     the measured time of a stacked step (:func:`stacked_step_seconds`) instead of one step each."""
-    from sdp_cli.experiment import load_experiment
-    from sdp_cli.pipeline import loop_configs
+    from sdp_cli.experiments.experiment import load_experiment
+    from sdp_cli.experiments.pipeline import loop_configs
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
@@ -287,8 +287,8 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         r["samples"] += st.epochs * st.E
         for d in devices:
             r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B) + cals[d][("compile", st.key)]
-    from sdp_cli.runner import pack
-    from sdp_cli.train_stack import DEFAULT_STACK
+    from sdp_cli.experiments.runner import pack
+    from sdp_cli.training.train_stack import DEFAULT_STACK
 
     stacked: dict = {}
     for job in (j for j in pack(runs, DEFAULT_STACK if stack is None else stack) if len(j) > 1):

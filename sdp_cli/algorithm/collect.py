@@ -31,13 +31,13 @@ from sdp_cli.data.artifacts import (artifact_writes, atomic_write_bytes, check_w
                                     split_timing)
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
-from sdp_cli.executor import error_status
-from sdp_cli.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
+from sdp_cli.execution.executor import error_status
+from sdp_cli.algorithm.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
                                  refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
 from sdp_cli.tasks import Task, get_task
 
 if TYPE_CHECKING:   # the annotation of collect(executor=...)
-    from sdp_cli.executor import Executor
+    from sdp_cli.execution.executor import Executor
 
 
 @dataclass(frozen=True)
@@ -100,7 +100,7 @@ class _Jobs:
         self.policy = None
         if config.policy is not None:
             from sdp_cli.policy import load_policy
-            from sdp_cli.rollout import RolloutConfig
+            from sdp_cli.algorithm.rollout import RolloutConfig
 
             self.policy = load_policy(config.policy, device="cpu")
             if self.policy.task_name != config.task:
@@ -111,14 +111,14 @@ class _Jobs:
 
     def make(self, indices: list[int]) -> list[tuple[Callable, tuple, list[int]]]:
         """Jobs ``(fn, args, indices)``: one per index, or (``to="ddp"``) one per batch of up to
-        :data:`~sdp_cli.solve_jobs.DDP_BATCH` indices solved together; every job returns a list of results."""
+        :data:`~sdp_cli.algorithm.solve_jobs.DDP_BATCH` indices solved together; every job returns a list of results."""
         c = self.config
         chunks = job_chunks(indices, c.to)
         if self.policy is None:
             return [(solve_indices, (c.task, c.task_options, c.seed, ch, c.max_iter, c.to), ch) for ch in chunks]
         import torch
 
-        from sdp_cli.rollout import instance_generators, rollout_policy
+        from sdp_cli.algorithm.rollout import instance_generators, rollout_policy
 
         xis = np.stack([sample_xi(self.task, c.seed, i) for i in indices])
         with torch.no_grad():
@@ -286,10 +286,10 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
 
     ``executor``: ``"local"`` (process pool of ``workers``, default all cores), ``"dask"``
     (a LocalCluster of ``workers`` processes, or the cluster of ``scheduler``), or an open
-    :class:`~sdp_cli.executor.Executor` (used as is, not closed). The result does not
+    :class:`~sdp_cli.execution.executor.Executor` (used as is, not closed). The result does not
     depend on it.
     """
-    from sdp_cli.executor import Executor, check_executor_options, make_executor
+    from sdp_cli.execution.executor import Executor, check_executor_options, make_executor
 
     out = Path(out)
     if out.exists() and out.is_dir():

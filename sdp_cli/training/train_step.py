@@ -1,7 +1,7 @@
 """One training step for one run and for a stack of runs (Algorithm 1, lines 17-21).
 
 :func:`step` is the step of the trainer (``sdp train``, ``sdp loop``), of the stacked trainer (``sdp pipeline
---run``, :mod:`sdp_cli.train_stack`) and of the estimate's timing: every active run draws its batch, the family's
+--run``, :mod:`sdp_cli.training.train_stack`) and of the estimate's timing: every active run draws its batch, the family's
 loss of each (its own draws from its own generator), a divergence check before any weight moves, one backward,
 then each run's gradient-norm clipping, AdamW step, EMA update and LR schedule with its own settings. What differs
 between one run and R runs is only *where the arithmetic runs*, a group:
@@ -11,7 +11,7 @@ between one run and R runs is only *where the arithmetic runs*, a group:
 - :class:`Stack`: a family that opts into stacking (``Policy.stackable``) gives ``Family.stack(policies)``, one
   network for R runs whose ``losses(draws)`` applies the family's own ``loss_from`` to each member's
   ``draw`` (:class:`sdp_cli.policy.diffusion.StackedDiffusion`); the members' clipping, AdamW and EMA run as
-  whole-stack matrix operations (:class:`sdp_cli.stack_optim.StackedOptimisation`: the same formulas, torch's
+  whole-stack matrix operations (:class:`sdp_cli.training.stack_optim.StackedOptimisation`: the same formulas, torch's
   fused AdamW kernel on each member's row).
 
 A run trained in a stack equals the same run trained alone to float32 rounding (the grouped kernels and the
@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 
 from sdp_cli.errors import SdpError
-from sdp_cli.stack_optim import StackedOptimisation
+from sdp_cli.training.stack_optim import StackedOptimisation
 
 
 class Diverged(SdpError):
@@ -36,7 +36,7 @@ class Diverged(SdpError):
 
 
 class OneRun:
-    """A run alone (``run``: :class:`sdp_cli.train.Run` or anything with its ``policy, cfg, opt, sched, ema,
+    """A run alone (``run``: :class:`sdp_cli.training.train.Run` or anything with its ``policy, cfg, opt, sched, ema,
     gen, done, next_batch()``)."""
 
     def __init__(self, run):
@@ -82,7 +82,7 @@ class Stack:
 def step(group) -> list:
     """One optimisation step of every active (not finished) run of ``group``: ``[(loss, parts, grad_norm) or
     None]`` per run; raises :class:`Diverged` before touching any weight when a loss is not finite. The runs'
-    step counters are the caller's (:meth:`sdp_cli.train.Run.record`)."""
+    step counters are the caller's (:meth:`sdp_cli.training.train.Run.record`)."""
     runs = group.runs
     active = [not r.done for r in runs]
     results = group.losses([r.next_batch() if a else None for r, a in zip(runs, active)])
