@@ -10,6 +10,12 @@ from sdp_cli.moved import install as _install_moved
 _cap_cpu_kernels()
 _install_moved()   # the modules' import paths before the layer folders (sdp_cli/moved.py)
 
+#: the heavy dependencies, imported inside the functions that use them (and so are the modules of sdp that import
+#: them at module level), so that `sdp --help` and the light commands start without them; every other import is
+#: at module level, except the few that must run late (the CLI entry's, optional ones, a package's lazy
+#: attributes): tests/test_imports.py checks both
+LAZY_IMPORTS = ("torch", "diffusers", "pandas", "matplotlib", "scipy", "dask", "distributed", "yaml", "rich")
+
 #: Version of what runs measure. A commit that changes the numbers a run produces (chunk sampling, a
 #: task's definition, a loss, a solver's stopping rule, ...) bumps it and says what changed in
 #: :data:`RESULTS_HISTORY`; a comment, a refactor or a report change does not. Every loop run records it

@@ -12,12 +12,19 @@ from typing import Annotated, Optional
 
 import typer
 
+import sdp_cli
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.cli_options import (DeviceOpt, ExecutorOpt, ProgressOpt, SchedulerOpt, ThreadsOpt,  # noqa: F401
                                  ToOpt, WorkersOpt, with_loop_algorithm_options, with_loop_rollout_options, with_train_options, clean_errors, int_list,
                                  set_threads, task_help)
 from sdp_cli.errors import SdpError
 from sdp_cli.seeds import check_loop_options
+from sdp_cli.trajopt.timeout import solve_timeout
+from sdp_cli.tasks import load_task_module, task_descriptions
+from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
+from sdp_cli.algorithm.refine import refine
+from sdp_cli.data.artifacts import artifact_writes, check_folder, check_writable, git_revision
+from sdp_cli.execution.workers import die_with_parent
 
 app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
@@ -25,9 +32,6 @@ app = typer.Typer(name="sdp", help="Sobolev Diffusion Policy toolkit.", no_args_
 
 def _version(value: bool) -> None:
     if value:
-        import sdp_cli
-        from sdp_cli.data.artifacts import git_revision
-
         typer.echo(f"sdp {sdp_cli.__version__} (git {git_revision()})")
         raise typer.Exit()
 
@@ -42,12 +46,8 @@ def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=
               "processes inherit it through SDP_TASK_MODULES. (--task-module: its older name.)")] = None,
           ) -> None:
     """Sobolev Diffusion Policy toolkit: collect, train, rollout, refine, report."""
-    from sdp_cli.trajopt.timeout import solve_timeout
-
     solve_timeout()   # a bad SDP_SOLVE_TIMEOUT is one line now, not a silent default (or a failure in a worker)
     if task_module:
-        from sdp_cli.tasks import load_task_module
-
         for f in task_module:
             load_task_module(f)
 
@@ -56,8 +56,6 @@ def _root(version: Annotated[Optional[bool], typer.Option("--version", callback=
 @clean_errors
 def tasks_cmd() -> None:
     """List the registered tasks."""
-    from sdp_cli.tasks import task_descriptions
-
     for name, desc in task_descriptions().items():
         typer.echo(f"{name:24s} {desc}")
 
@@ -85,7 +83,6 @@ def collect_cmd(
     progress: ProgressOpt = True,
 ) -> None:
     """Solve OCPs (from the naive guess, or warm-started by a policy) and write a dataset with feedback gains."""
-    from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
     from sdp_cli.progress import collect_progress, status
 
     set_threads(threads)
@@ -154,7 +151,6 @@ def refine_cmd(
 ) -> None:
     """Solve the OCP warm-started by the policy's trajectories (Algorithm 1, line 7)."""
     from sdp_cli.progress import count_progress
-    from sdp_cli.algorithm.refine import refine
 
     if workers is not None and workers <= 0:
         raise SdpError(f"--workers must be > 0, got {workers}")
@@ -185,7 +181,6 @@ def evaluate_cmd(
             raise SdpError(f"--tag must be KEY=VALUE, got {t!r}")
         k, v = t.split("=", 1)
         extra[k] = v
-    from sdp_cli.data.artifacts import artifact_writes, check_writable
 
     check_writable(out, metrics)   # both outputs, before writing either
     row = evaluation_row(rollouts, refined, extra)
@@ -304,12 +299,10 @@ def pipeline_cmd(
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
-        from sdp_cli.data.artifacts import check_folder
         from sdp_cli.experiments.runner import run_group, summary_text
 
         check_folder(out, "runs folder")
         if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
-            from sdp_cli.execution.workers import die_with_parent
 
             die_with_parent(os.getppid())
 
@@ -354,7 +347,6 @@ def report_cmd(
     """Write the paper's tables and figures from whatever runs exist, and the claims ledger."""
     if runs is None and ledger is None:
         raise SdpError("nothing to do: give --runs (a report) and/or --ledger (the claims ledger)")
-    from sdp_cli.data.artifacts import check_folder, check_writable
 
     check_folder(out, "report folder")
     check_writable(metrics, ledger)   # every output, before any work

@@ -5,17 +5,25 @@ from __future__ import annotations
 
 import functools
 from typing import Annotated, Callable, Optional
+import inspect
+from dataclasses import fields
 
 import typer
+from typer.core import TyperOption
 
 from sdp_cli.errors import SdpError
+from sdp_cli.tasks import task_names
+from sdp_cli.policy.registry import get_method, method_names
+from sdp_cli.policy.config import option_field, option_type, options
+from sdp_cli.policy.config import TrainConfig, options
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, _default, option_kind
+from sdp_cli.algorithm.loop_options import LoopRolloutConfig
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions
 
 
 def _flags_without_type() -> None:
     """typer 0.29 with click 8.5 shows ``<bool>`` after every flag in ``--help`` (``--resume <bool>``,
     ``--progress/--no-progress <bool>``): a flag takes no value, so it shows no type."""
-    from typer.core import TyperOption
-
     if getattr(TyperOption.display_type_rich, "_sdp", False):
         return
     original = TyperOption.display_type_rich
@@ -59,8 +67,6 @@ def os_error_text(e: OSError) -> str:
 
 
 def task_help() -> str:
-    from sdp_cli.tasks import task_names
-
     return "Task name, one of: " + ", ".join(task_names()) + " (see `sdp tasks`)."
 
 
@@ -93,8 +99,6 @@ def set_threads(threads: int) -> None:
 
 
 def method_help() -> str:
-    from sdp_cli.policy.registry import get_method, method_names
-
     return "; ".join(f"{m} ({get_method(m).description})" if get_method(m).description else m
                      for m in method_names()) + "."
 
@@ -120,10 +124,6 @@ def _list_parser(flag: str, kind: type):
 
 def _option_param(name: str, required: tuple[str, ...]):
     """``(inspect.Parameter, parse)`` of training option ``name`` (:func:`sdp_cli.policy.config.options`)."""
-    import inspect
-
-    from sdp_cli.policy.config import option_field, option_type, options
-
     _, default, help_ = option_field(name)
     base, item, _ = option_type(name)
     flag = "--" + name.replace("_", "-")
@@ -150,8 +150,6 @@ def _option_param(name: str, required: tuple[str, ...]):
 def _with_params(wrapper: Callable, fn: Callable, injected: str, params: list) -> Callable:
     """Give ``wrapper`` (which calls ``fn`` with ``injected=...``) the signature typer reads: ``fn``'s own
     parameters but ``injected``, with the generated ``params``; required ones first, each group in order."""
-    import inspect
-
     own = [p for p in inspect.signature(fn, eval_str=True).parameters.values() if p.name != injected]
     req = lambda ps: [p for p in ps if p.default is inspect.Parameter.empty]          # noqa: E731
     opt_ = lambda ps: [p for p in ps if p.default is not inspect.Parameter.empty]     # noqa: E731
@@ -168,10 +166,6 @@ def with_train_options(required: tuple[str, ...] = ("method",), check: Callable[
     ``sdp loop`` declare none by hand. The wrapped function receives ``train=TrainConfig.of(given options)``
     (the others at the config's defaults); an invalid value is one line and exit code 1. ``check(given)`` runs
     the command's own rules first (``sdp loop``'s seed range)."""
-    import inspect
-
-    from sdp_cli.policy.config import TrainConfig, options
-
     def decorate(fn: Callable) -> Callable:
         params, parsers = [], {}
         for name in options():
@@ -203,11 +197,6 @@ def with_loop_options(cls, injected: str) -> Callable:
     keys are; the wrapped function receives ``<injected>=`` the options given: an instance of ``cls``, or, for
     :class:`~sdp_cli.algorithm.loop_options.LoopAlgorithmOptions` (``LoopConfig``'s own fields), a ``{field: value}`` dict
     (the defaults are the fields')."""
-    import inspect
-    from dataclasses import fields
-
-    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, _default, option_kind
-
     def param(f):
         base, item, optional = option_kind(f, cls)
         flag = f.metadata.get("flag") or "--" + f.name.replace("_", "-")
@@ -250,14 +239,10 @@ def with_loop_options(cls, injected: str) -> Callable:
 def with_loop_rollout_options(cls=None) -> Callable:
     """:func:`with_loop_options` of :class:`~sdp_cli.algorithm.loop_options.LoopRolloutConfig` (or a subclass with more
     options): ``rollout=LoopRolloutConfig(given options)``."""
-    from sdp_cli.algorithm.loop_options import LoopRolloutConfig
-
     return with_loop_options(cls or LoopRolloutConfig, "rollout")
 
 
 def with_loop_algorithm_options(cls=None) -> Callable:
     """:func:`with_loop_options` of :class:`~sdp_cli.algorithm.loop_options.LoopAlgorithmOptions` (or a subclass):
     ``algorithm={given options}``, the keyword arguments of ``LoopConfig``."""
-    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions
-
     return with_loop_options(cls or LoopAlgorithmOptions, "algorithm")

@@ -142,3 +142,73 @@ def test_the_old_paths_of_moved_modules_are_the_new_modules_for_one_release():
     assert old is importlib.import_module("sdp_cli.algorithm.collect")
     assert any(issubclass(w.category, DeprecationWarning) and "sdp_cli.algorithm.collect" in str(w.message)
                for w in caught)
+
+
+def test_the_cli_starts_without_the_lazy_dependencies():
+    """``LAZY_IMPORTS`` stay out of the CLI's start-up (imported inside the functions that use them)."""
+    import subprocess
+    import sys
+
+    from sdp_cli import LAZY_IMPORTS
+
+    code = f"import sys, sdp_cli.cli; print(sorted(m for m in {LAZY_IMPORTS!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120).stdout
+    assert out.strip() == "[]", out
+
+
+#: function-level imports that must run late, each with its reason (every other one is of LAZY_IMPORTS or of a
+#: module of sdp that imports one of them at module level)
+LATE = {("sdp_cli/__main__.py", "sdp_cli.cli"): "Ctrl-C during the CLI's start-up is caught around this import",
+        ("sdp_cli/cli.py", "typer._click"): "typer's vendored click, or click: whichever this typer has",
+        ("sdp_cli/cli.py", "click"): "typer's vendored click, or click: whichever this typer has",
+        ("sdp_cli/policy/__init__.py", "importlib"): "the package's lazy attributes (torch on first use)",
+        ("sdp_cli/policy/__init__.py", "sdp_cli.policy.api"): "the package's lazy attributes (torch on first use)",
+        ("sdp_cli/trajopt/__init__.py", "sdp_cli.trajopt.ddp"): "the package would import itself back",
+        ("sdp_cli/algorithm/collect.py", "sdp_cli.policy"): "load_policy is a lazy attribute: it imports torch",
+        ("sdp_cli/execution/executor.py", "sdp_cli.execution.executor_dask"): "dask only for --executor dask",
+        ("sdp_cli/execution/executor.py", "sdp_cli.execution.workers"): "run in the worker process it starts",
+        ("sdp_cli/execution/workers.py", "ctypes"): "Linux only, inside its platform guard"}
+
+
+def test_function_level_imports_are_lazy_dependencies_or_must_run_late():
+    from sdp_cli import LAZY_IMPORTS
+
+    mods = _modules()
+    trees = {m: ast.parse(f.read_text()) for m, f in mods.items()}
+
+    def owner(name):
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    def targets(node):
+        if isinstance(node, ast.Import):
+            return [a.name for a in node.names]
+        return [] if node.level else [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+
+    heavy: dict[str, bool] = {}
+
+    def is_heavy(m, seen=()):
+        if m not in heavy and m not in seen:
+            parts = m.split(".")
+            heavy[m] = any(t.split(".")[0] in LAZY_IMPORTS or (t.startswith("sdp_cli") and owner(t) not in (None, m)
+                                                               and is_heavy(owner(t), seen + (m,)))
+                           for n in trees[m].body if isinstance(n, (ast.Import, ast.ImportFrom)) for t in targets(n)) \
+                or any(is_heavy(".".join(parts[:i]), seen + (m,)) for i in range(2, len(parts)) if ".".join(parts[:i]) in mods)
+        return heavy.get(m, False)
+
+    eager = []
+    for m, tree in trees.items():
+        rel = str(mods[m].relative_to(ROOT))
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for node in ast.walk(fn):
+                    if isinstance(node, (ast.Import, ast.ImportFrom)):
+                        ts = targets(node)
+                        lazy = any(t.split(".")[0] in LAZY_IMPORTS or (t.startswith("sdp_cli") and owner(t) and is_heavy(owner(t)))
+                                   for t in ts)
+                        late = any((rel, t.rpartition(".")[0] if t.count(".") and (rel, t) not in LATE else t) in LATE
+                                   or (rel, t) in LATE for t in ts)
+                        if not (lazy or late):
+                            eager.append(f"{rel}:{node.lineno} {ast.unparse(node)}")
+    assert not eager, "hoist these to module level (or give the reason in LATE):\n" + "\n".join(eager)

@@ -22,7 +22,8 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, TYPE_CHECKING
+import hashlib
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -31,13 +32,13 @@ from sdp_cli.data.artifacts import (artifact_writes, atomic_write_bytes, check_w
                                     split_timing)
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
-from sdp_cli.execution.executor import error_status
 from sdp_cli.algorithm.solve_jobs import (RESULT_KEYS, failed_result, instance_arrays, job_chunks, job_size,  # noqa: F401
                                  refine_indices, sample_xi, solve_index, solve_indices, warm_solver)
 from sdp_cli.tasks import Task, get_task
-
-if TYPE_CHECKING:   # the annotation of collect(executor=...)
-    from sdp_cli.execution.executor import Executor
+from sdp_cli.seeds import check_seed
+from sdp_cli.trajopt import check_to
+from sdp_cli.tasks.conversion import check_conversion
+from sdp_cli.execution.executor import Executor, check_executor_options, error_status, make_executor
 
 
 @dataclass(frozen=True)
@@ -61,13 +62,9 @@ class CollectConfig:
     to: str = DEFAULT_TO
 
     def __post_init__(self):
-        from sdp_cli.seeds import check_seed
-        from sdp_cli.trajopt import check_to
-
         check_seed(self.seed)
         check_to(self.to)
         check_fields(self)
-        from sdp_cli.tasks.conversion import check_conversion
 
         check_conversion(self.conversion)
         if self.policy is None and (self.t_a is not None or self.k_rollout is not None or self.conversion):
@@ -132,8 +129,6 @@ class _Jobs:
 
 def policy_fingerprint(path: str | os.PathLike) -> str:
     """Content hash of a checkpoint (a run folder means its ``checkpoint.pt``)."""
-    import hashlib
-
     p = Path(path)
     if p.is_dir():
         p = p / "checkpoint.pt"
@@ -289,14 +284,11 @@ def collect(config: CollectConfig, out: str | os.PathLike, workers: int | None =
     :class:`~sdp_cli.execution.executor.Executor` (used as is, not closed). The result does not
     depend on it.
     """
-    from sdp_cli.execution.executor import Executor, check_executor_options, make_executor
-
     out = Path(out)
     if out.exists() and out.is_dir():
         raise SdpError(f"--out {out} is a directory; give a file path such as {out}/dataset.npz")
     check_writable(out)   # a device, fifo or socket there is refused before any work
     task = get_task(config.task, **config.task_options)  # validates the name early
-    from sdp_cli.trajopt import check_to
 
     check_to(config.to)
     if not isinstance(executor, Executor):

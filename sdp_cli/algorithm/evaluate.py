@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import math
 
 import numpy as np
 import pandas as pd
@@ -39,6 +40,10 @@ from sdp_cli.algorithm.argmin import policy_outcomes
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
 from sdp_cli.errors import SdpError
+from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
+from sdp_cli.tasks import get_task
+from sdp_cli.data.artifacts import artifact_writes
+from sdp_cli.data.artifacts import code_revision
 
 
 def _mean(a) -> float:
@@ -70,8 +75,6 @@ def _timed(arrays: dict, timing: dict, key: str, n: int) -> np.ndarray:
 
 def _rollout_task(meta: dict):
     """The task a rollout artifact names, to recompute what older rollouts did not store."""
-    from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
-
     return get_task(meta.get("task"), **(meta.get("task_options") or {}))
 
 
@@ -106,7 +109,6 @@ def _solved_and_reached(rmeta: dict, d: dict, guess: str, ok: np.ndarray) -> flo
     key = f"inst_{guess}_X"
     if key not in d or not ok.any():
         return float(np.mean(ok)) if key in d else float("nan")
-    from sdp_cli.tasks import get_task
 
     task = get_task(rmeta["task"], **(rmeta.get("task_options") or {}))
     X, xi = d[key], d["inst_xi"]
@@ -119,7 +121,6 @@ def _conversion_before_the_setting(rmeta: dict, pcfg: dict) -> str | None:
     state actions, none for torques (MLPs, torque chunks)."""
     if rmeta["config"].get("k_rollout") is None:
         return None
-    from sdp_cli.tasks import get_task
 
     try:
         action = (pcfg.get("policy") or {}).get("action") or get_task(rmeta.get("task"),
@@ -225,9 +226,6 @@ def evaluation_row(rollouts: str | os.PathLike, refined: str | os.PathLike | Non
 def write_metrics(row: dict, out: str | os.PathLike) -> Path:
     """The row without its timing columns as a JSON object (DVC metrics file); non-finite
     numbers become null."""
-    import json
-    import math
-
     clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()
              if not is_timing_column(k)}
     return atomic_write_bytes(out, lambda f: f.write(json.dumps(clean, indent=2, default=str).encode()))
@@ -296,15 +294,11 @@ def write_evaluation(rows: list[dict], out: str | os.PathLike, artifacts: list[d
     """Write rows as CSV atomically, their timing columns to the CSV's timing sidecar (with ``wall_time``, the
     measured seconds of the whole evaluation, when given), and the manifest of ``artifacts`` (one
     :func:`evaluation_artifacts` per row) next to it."""
-    from sdp_cli.data.artifacts import artifact_writes
-
     with artifact_writes():   # the CSV, its timing sidecar and its manifest: all three or none
         return _write_evaluation(rows, Path(out), artifacts, wall_time, wall_partial)
 
 
 def _write_evaluation(rows, out: Path, artifacts, wall_time, wall_partial) -> Path:
-    from sdp_cli.data.artifacts import code_revision
-
     df = pd.DataFrame(rows)
     timed = [c for c in df.columns if is_timing_column(c)]
     path = atomic_write_bytes(out, lambda f: f.write(df.drop(columns=timed).to_csv(index=False).encode()))

@@ -27,6 +27,8 @@ import os
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Callable
+import json
+import time
 
 import numpy as np
 import pandas as pd
@@ -36,6 +38,15 @@ from sdp_cli.data.artifacts import atomic_write_bytes, ensure_dir, load_npz, sav
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import rule
 from sdp_cli.policy.config import TrainConfig, flat_options
+from sdp_cli.seeds import check_loop_seed
+from sdp_cli.execution.executor import check_executor_options
+from sdp_cli.tasks import get_task
+from sdp_cli.trajopt import check_to
+from sdp_cli import RESULTS_VERSION
+from sdp_cli.data.artifacts import code_revision
+from sdp_cli.algorithm.refine import refine
+from sdp_cli.data.artifacts import load_timing
+from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
 
 
 @dataclass(frozen=True)
@@ -55,14 +66,11 @@ class LoopConfig(LoopAlgorithmOptions):
     scheduler: str | None = None   # address of a running Dask scheduler
 
     def __post_init__(self):
-        from sdp_cli.seeds import check_loop_seed
-
         object.__setattr__(self, "n_traj", tuple(int(n) for n in self.n_traj))
         LoopAlgorithmOptions.__post_init__(self)
         check_loop_seed(self.seed, "seed", self.n_algo)
         if not self.n_traj:
             raise SdpError("n_traj must be positive integers, got []")
-        from sdp_cli.execution.executor import check_executor_options
 
         check_executor_options(self.executor, self.workers, self.scheduler)
         self.validate()
@@ -90,9 +98,6 @@ class LoopConfig(LoopAlgorithmOptions):
 
     def validate(self) -> None:
         """Everything checkable before any file is written: task, TO family, T_a, k_rollout."""
-        from sdp_cli.tasks import get_task
-        from sdp_cli.trajopt import check_to
-
         task = get_task(self.task)
         check_to(self.to)
         if self.max_iter <= 0:
@@ -161,11 +166,6 @@ RESUMABLE_FIELDS = ("n_algo", "rollout.eval_t_a", "rollout.eval_t_a_last", "work
 
 
 def _config_json(cfg: LoopConfig) -> str:
-    import json
-
-    from sdp_cli import RESULTS_VERSION
-    from sdp_cli.data.artifacts import code_revision
-
     return json.dumps({**cfg.to_dict(), "code_rev": code_revision(), "results_version": RESULTS_VERSION},
                       indent=2)
 
@@ -189,8 +189,6 @@ def check_resume(cfg: LoopConfig, out: Path, same_results: bool = False) -> None
     another results version (none recorded: version 1) counts as other settings. A code revision alone
     never does: a comment edit must not restart 70 hours of runs. Folders of the older flat layout are
     compared after :func:`migrate_loop_dict`."""
-    import json
-
     path = out / "loop_config.json"
     if not path.exists():
         if out.is_dir() and any(out.iterdir()):
@@ -240,10 +238,8 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     (without refine when ``cfg.rollout.eval_refine`` is off: the policy's own metrics only)."""
     from sdp_cli.algorithm.evaluate import evaluation_artifacts, evaluation_row, write_evaluation
     from sdp_cli.progress import count_progress
-    from sdp_cli.algorithm.refine import refine
     from sdp_cli.algorithm.rollout import RolloutConfig, rollout
 
-    import time
 
     t0 = time.perf_counter()
     new_work = reused = 0      # artifacts made by this call / found made by an earlier one
@@ -280,7 +276,6 @@ def run_iteration_eval(policy_dir: Path, eval_dir: Path, cfg: LoopConfig, extra:
     # the measured wall time of the evaluation (rollouts, refinement with every baseline, evaluation), not a sum
     # of parts. A resume that found every artifact made keeps the recorded one; one that found some made records
     # its own time and says the measurement is partial.
-    from sdp_cli.data.artifacts import load_timing
 
     before = load_timing(eval_dir / "eval.csv")
     wall, partial = time.perf_counter() - t0, bool(reused)
@@ -304,8 +299,6 @@ def collect_iteration(cfg: LoopConfig, out: Path, k: int, prev_policy: Path | No
                       log: Callable[[str], None] = print, progress: bool = False) -> Path:
     """Iteration ``k``'s dataset ``out/it<k>/data.npz`` (collected unless it exists): the naive-guess TO at
     ``k = 0``, then TO warm-started by ``prev_policy``'s rollouts with ArgminCost."""
-    from sdp_cli.algorithm.collect import CollectConfig, collect, policy_fingerprint
-
     data = out / f"it{k}" / "data.npz"
     if not data.exists():
         log(f"[it{k}] collect {cfg.n_traj_at(k)} trajectories" + (" (policy warm start)" if prev_policy else ""))
@@ -341,7 +334,6 @@ def run_loop(cfg: LoopConfig, out: str | os.PathLike, log: Callable[[str], None]
              progress: bool = False) -> pd.DataFrame:
     """Run (or resume) Algorithm 1 in ``out``; returns the per-iteration evaluation table.
     ``progress``: bars on stderr for every phase (on a terminal only, :func:`sdp_cli.progress.enabled`)."""
-    from sdp_cli import RESULTS_VERSION
     from sdp_cli.algorithm.evaluate import is_timing_column
     from sdp_cli.training.train import train
 

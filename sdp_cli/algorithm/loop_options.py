@@ -20,6 +20,9 @@ from dataclasses import MISSING, dataclass, field, fields
 
 from sdp_cli.families import DEFAULT_TO, TO_FAMILIES, TO_NAMES
 from sdp_cli.rules import check_fields, rule
+from sdp_cli.seeds import check_seed
+from sdp_cli.tasks.conversion import check_conversion
+from sdp_cli.errors import SdpError
 
 
 def loop_opt(default=MISSING, help: str = "", factory=MISSING, flag: str | None = None, **bounds):
@@ -46,8 +49,6 @@ class LoopAlgorithmOptions:
     def __post_init__(self):
         check_fields(self)
         if self.to not in TO_FAMILIES:
-            from sdp_cli.errors import SdpError
-
             raise SdpError(f"to must be one of {', '.join(TO_FAMILIES)}; got {self.to!r}")
 
 
@@ -73,9 +74,6 @@ class LoopRolloutConfig:
                                        "policy's own metrics only (sweeps).")
 
     def __post_init__(self):
-        from sdp_cli.seeds import check_seed
-        from sdp_cli.tasks.conversion import check_conversion
-
         for f in fields(self):   # lists (experiment files, JSON) become tuples
             if option_kind(f, type(self))[1] is not None:
                 object.__setattr__(self, f.name, tuple(int(v) for v in getattr(self, f.name)))

@@ -25,6 +25,9 @@ from sdp_cli.algorithm.solve_jobs import (RESULT_KEYS, SS_KEYS, failed_record, i
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import get_task
 from sdp_cli.tasks.base import check_task_params
+from sdp_cli.execution.executor import Executor, check_executor_options, error_status, make_executor
+from sdp_cli.data.artifacts import check_writable
+from sdp_cli.trajopt import check_to
 
 
 @dataclass
@@ -49,8 +52,6 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
     (:func:`sdp_cli.execution.executor.make_executor`, or an open executor, not closed here). A job
     that raises counts as an instance where nothing converged.
     """
-    from sdp_cli.execution.executor import Executor, check_executor_options, error_status, make_executor
-
     arrays, meta = load_npz(rollouts, kind="rollout")
     for k in ("X", "U", "xi"):
         if k not in arrays:
@@ -59,13 +60,11 @@ def refine(rollouts: str | os.PathLike, out: str | os.PathLike, max_iter: int = 
         raise SdpError(f"max_iter must be > 0, got {max_iter}")
     if not meta.get("task"):
         raise SdpError(f"corrupt rollout artifact {rollouts}: no task name in its metadata")
-    from sdp_cli.data.artifacts import check_writable
 
     check_writable(out)                    # before the solves, not after them
     task_name, task_options = meta["task"], meta.get("task_options", {})
     task = get_task(task_name, **task_options)
     check_task_params(task, meta.get("task_params"), f"rollout artifact {rollouts}")
-    from sdp_cli.trajopt import check_to
 
     check_to(to)
     n = len(arrays["xi"])

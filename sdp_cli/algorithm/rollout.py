@@ -31,6 +31,9 @@ from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
 from sdp_cli.seeds import TEST_SEED_BASE, check_seed  # noqa: F401 (TEST_SEED_BASE re-exported)
 from sdp_cli.tasks import Task
+from sdp_cli.tasks.conversion import check_conversion
+from sdp_cli.policy import load_policy
+from sdp_cli.data.artifacts import check_writable
 
 DIVERGENCE_COST = 1e5
 #: a state coordinate beyond this (rad, rad/s, m, m/s) is a diverged simulation: the faithful
@@ -50,8 +53,6 @@ class RolloutConfig:
     conversion: str | None = None
 
     def __post_init__(self):
-        from sdp_cli.tasks.conversion import check_conversion
-
         check_seed(self.seed, "test seed")
         check_fields(self)
         check_conversion(self.conversion)
@@ -157,13 +158,10 @@ def rollout(policy_path: str | os.PathLike, out: str | os.PathLike, config: Roll
             task_name: str | None = None, device: str = "cpu",
             on_step: Callable[[int, int], None] | None = None) -> tuple[Path, dict]:
     """Load a policy, roll it out on the test set, write a ``rollout`` artifact."""
-    from sdp_cli.policy import load_policy
-
     policy = load_policy(policy_path, device=device)
     if task_name is not None and task_name != policy.task_name:
         raise SdpError(f"policy {policy_path} was trained on task {policy.task_name!r}, not {task_name!r}")
     config = config.validate(policy)
-    from sdp_cli.data.artifacts import check_writable
 
     check_writable(out)                    # before the work, not after it
     task = policy.task

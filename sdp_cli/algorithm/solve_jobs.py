@@ -16,6 +16,9 @@ import numpy as np
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.algorithm.argmin import TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes  # noqa: F401
 from sdp_cli.tasks import Task, get_task
+from sdp_cli.trajopt import get_to_solver
+from sdp_cli.trajopt import build_count, get_to_solver
+from sdp_cli.trajopt.single_shooting import get_single_shooting
 
 RESULT_KEYS = ("X", "U", "K", "A", "B", "Phi", "cost", "iterations", "solve_time", "converged",
                "max_violation")
@@ -58,8 +61,6 @@ def job_chunks(items: list, to: str) -> list[list]:
 def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[int], max_iter: int,
                   to: str = DEFAULT_TO) -> list[dict]:
     """:func:`solve_index` of several indices in one job; with ``to="ddp"`` one DDP batch."""
-    from sdp_cli.trajopt import get_to_solver
-
     task = get_task(task_name, **task_options)
     solver = get_to_solver(task, to, max_iter=max_iter)
     xis = [sample_xi(task, seed, i) for i in indices]
@@ -69,8 +70,6 @@ def solve_indices(task_name: str, task_options: dict, seed: int, indices: list[i
 
 def warm_solver(task_name: str, task_options: dict, max_iter: int, to: str = DEFAULT_TO) -> int:
     """Build (or reuse) this process's solver of the task; the process's build count (NLP solvers)."""
-    from sdp_cli.trajopt import build_count, get_to_solver
-
     get_to_solver(get_task(task_name, **task_options), to, max_iter=max_iter)
     return build_count()
 
@@ -105,8 +104,6 @@ SS_KEYS = tuple(f"ss_{g}_{k}" for g in ("pol", "base") for k in SS_MISSING)
 
 def _single_shooting_record(task, xi, U_pol, usable: bool, baseline: bool, max_iter: int) -> dict:
     """The second TO baseline (:mod:`sdp_cli.trajopt.single_shooting`) from the policy's and the naive controls."""
-    from sdp_cli.trajopt.single_shooting import get_single_shooting
-
     ss = get_single_shooting(task, max_iter)
     rec = {}
     for g, guess in (("pol", U_pol if usable else None), ("base", task.naive_guess(xi)[1] if baseline else None)):
@@ -134,8 +131,6 @@ def refine_instances(task_name: str, task_options: dict, xis, X_pols, U_pols, ma
                      single_shooting: bool = False, to: str = DEFAULT_TO) -> list[dict]:
     """:func:`refine_instance` of several instances in one job; with ``to="ddp"`` the policy guesses are solved as
     one DDP batch and the naive guesses as another (the same results as one by one)."""
-    from sdp_cli.trajopt import get_to_solver
-
     task = get_task(task_name, **task_options)
     solver = get_to_solver(task, to, max_iter=max_iter)
     U_pols = [np.clip(U, task.u_lb, task.u_ub) for U in U_pols]

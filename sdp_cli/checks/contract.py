@@ -24,6 +24,12 @@ import numpy as np
 
 from sdp_cli.data.chunks import action_sequence, task_with_action
 from sdp_cli.tasks import Task
+from sdp_cli.algorithm.solve_jobs import sample_xi
+from sdp_cli.trajopt import get_solver
+from sdp_cli.policy.registry import get_method
+from sdp_cli.tasks import get_task
+from sdp_cli.errors import SdpError
+from sdp_cli.checks.noise import noise_rows_text, tolerance_table
 
 #: Jacobian entries are O(1); the quadrotor's (Pinocchio's Jlog6 of a rotation within ~1e-4 rad of the
 #: reference) match finite differences to 2.5e-6, every other task's to < 1e-8
@@ -113,9 +119,6 @@ def action_rows(task: Task, action: str) -> list[dict]:
 def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: int = 20) -> dict:
     """``n_traj`` converged TO optima from the naive guess (instances ``(seed, i)`` as ``sdp collect``
     draws them): ``{"X", "U", "xi", "K", "Phi"}``."""
-    from sdp_cli.algorithm.solve_jobs import sample_xi
-    from sdp_cli.trajopt import get_solver
-
     solver = get_solver(task)
     keep = []
     for i in range(max_attempts):
@@ -126,8 +129,6 @@ def solve_instances(task: Task, n_traj: int = 2, seed: int = 0, max_attempts: in
         if len(keep) == n_traj:
             break
     if len(keep) < n_traj:
-        from sdp_cli.errors import SdpError
-
         raise SdpError(f"task {task.name!r}: only {len(keep)} of {max_attempts} solves converged")
     return {"xi": np.stack([k[0] for k in keep]), **{a: np.stack([getattr(k[1], a) for k in keep])
                                                      for a in ("X", "U", "K", "Phi")}}
@@ -175,7 +176,6 @@ def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
     ``sdp pipeline`` resolves them (:func:`sdp_cli.experiments.pipeline.loop_configs`, group defaults included)."""
     from sdp_cli.experiments.experiment import PIPELINES_DIR, load_experiment
     from sdp_cli.experiments.pipeline import loop_configs
-    from sdp_cli.policy.registry import get_method
 
     out = set()
     for path in sorted((root / PIPELINES_DIR).glob("*.yaml")):
@@ -191,8 +191,6 @@ def pipeline_chunk_cases(root: Path = Path(".")) -> set[tuple[str, int, int]]:
 def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, int]]:
     """The (T_h, T_a) pairs the experiments in ``root/pipelines`` roll out ``task_name``'s chunked policies
     with (:func:`pipeline_chunk_cases`), plus the defaults (T_h 32, T_a 31)."""
-    from sdp_cli.tasks import get_task
-
     T = get_task(task_name).T
     cases = {(32, 31)} | {(h, a) for t, h, a in pipeline_chunk_cases(root) if t == task_name}
     return sorted((h, a) for h, a in cases if h <= T + 1)
@@ -200,8 +198,6 @@ def pipeline_cases(task_name: str, root: Path = Path(".")) -> list[tuple[int, in
 
 def parse_cases(text: str) -> list[tuple[int, int]]:
     """``"32:31,64:63"`` -> ``[(32, 31), (64, 63)]`` (``SdpError`` otherwise)."""
-    from sdp_cli.errors import SdpError
-
     try:
         pairs = [tuple(int(v) for v in c.split(":")) for c in text.split(",")]
         if all(len(p) == 2 for p in pairs):
@@ -214,9 +210,6 @@ def parse_cases(text: str) -> list[tuple[int, int]]:
 def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool = True, echo=print) -> int:
     """``sdp check-task``: every check as a pass/fail line through ``echo``; the number of checks, or
     ``SdpError`` naming the failed ones."""
-    from sdp_cli.errors import SdpError
-    from sdp_cli.tasks import get_task
-
     t = get_task(name)
     if n_traj <= 0:
         raise SdpError(f"--n-traj must be > 0, got {n_traj}")
@@ -228,7 +221,6 @@ def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool
         arrays = solve_instances(t, n_traj)
         rows += optimum_rows(t, pairs, n_traj, arrays)[0]
         if t.action != "u":   # how much chunk error each conversion forgives (informs; never fails the check)
-            from sdp_cli.checks.noise import noise_rows_text, tolerance_table
 
             noise = noise_rows_text(t, tolerance_table(t, [arrays], pairs))
     width = max(len(r["check"]) for r in rows)

@@ -32,6 +32,8 @@ import zipfile
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+import sys
+import hashlib
 
 import numpy as np
 
@@ -116,8 +118,6 @@ def machine() -> dict[str, Any]:
     """The machine that wrote an artifact, kept in its timing sidecar: platform (kernel), CPU model, the CPU's
     :data:`~sdp_cli.execution.kernels.SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen
     dispatches to (capped at AVX2 by default: :mod:`sdp_cli.execution.kernels`)."""
-    import sys
-
     info = _cpuinfo()
     out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(info),
                            "cpu_simd": cpu_simd(info)}
@@ -148,8 +148,6 @@ def runtime_provenance() -> dict[str, Any]:
     """:func:`provenance` plus what can change within a process: the CPU kernel caps in effect
     (:mod:`sdp_cli.execution.kernels`), torch's CPU thread count and the CUDA device (when torch is loaded). Timing-free:
     equal for equal settings."""
-    import sys
-
     out = dict(provenance())
     out["cpu_kernels"] = cpu_kernels()
     torch = sys.modules.get("torch")
@@ -172,8 +170,6 @@ def json_default(o):
 
 def file_sha256(path: str | os.PathLike) -> str:
     """SHA-256 of a file's bytes (artifacts that belong together record each other's)."""
-    import hashlib
-
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

@@ -20,6 +20,7 @@ import os
 import stat
 import tempfile
 from pathlib import Path
+import shutil
 
 from sdp_cli.errors import SdpError
 
@@ -176,7 +177,6 @@ def _backup(path: Path) -> Path | None:
     try:
         os.link(path, backup)
     except OSError:        # no hard links here: a copy
-        import shutil
 
         shutil.copy2(path, backup)
     return backup

@@ -40,6 +40,7 @@ import os
 from concurrent.futures import FIRST_COMPLETED, Future
 from concurrent.futures import wait as _cf_wait
 from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import ProcessPoolExecutor
 
 from sdp_cli.errors import SdpError
 from sdp_cli.execution.executor_base import Executor, Outcome, error_status  # noqa: F401 (re-exported)
@@ -106,8 +107,6 @@ class PoolExecutor(Executor):
         return self.workers
 
     def _ensure_pool(self):
-        from concurrent.futures import ProcessPoolExecutor
-
         if self._pool is not None and self._broken:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None

@@ -10,11 +10,10 @@ from typing import Callable, Iterable
 
 from sdp_cli.errors import SdpError
 from sdp_cli.execution.executor_base import Executor, Outcome, error_status
+import sdp_cli
 
 def _probe() -> dict:
     """Run on every Dask worker: can it import sdp, and which version."""
-    import sdp_cli
-
     return {"version": sdp_cli.__version__, "pid": os.getpid()}
 
 
@@ -54,8 +53,6 @@ class DaskExecutor(Executor):
             raise
 
     def _check_workers(self, timeout: float) -> None:
-        import sdp_cli
-
         try:
             self.client.wait_for_workers(1, timeout=timeout)
         except TimeoutError:

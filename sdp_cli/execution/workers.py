@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import os
 import time
+import signal
+import threading
 
 
 def worker_init(parent: int | None = None) -> None:
@@ -16,7 +18,6 @@ def worker_init(parent: int | None = None) -> None:
     # Ctrl-C reaches the whole foreground process group: the parent handles it (and stops the pool), so a
     # worker ignores it instead of printing its own KeyboardInterrupt traceback. Training inside a worker
     # (`sdp pipeline --run`) installs its own handler (sdp_cli.execution.interrupts) and checkpoints at a step boundary.
-    import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent(parent)
@@ -27,9 +28,6 @@ def die_with_parent(parent: int | None) -> None:
 
     Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``; elsewhere a daemon thread polls the parent pid.
     """
-    import signal
-    import threading
-
     if parent is None:
         return
     try:

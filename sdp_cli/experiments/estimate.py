@@ -27,6 +27,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -35,14 +36,16 @@ import torch
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.registry import get_method
+from sdp_cli.tasks import get_task
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.registry import make_policy
+from sdp_cli.training.train_stack import DEFAULT_STACK
 
 
 def to_reference(task: str, to: str = DEFAULT_TO) -> tuple[float, float]:
     """Reference seconds per solve of ``task``: (the loop's TO, single shooting); the loop's TO is multiple
     shooting (:attr:`Task.reference_solve_s`) or, ``to="ddp"``, box-FDDP where the task gives its time
     (:attr:`Task.reference_ddp_s`)."""
-    from sdp_cli.tasks import get_task
-
     t = get_task(task)
     ms, ss = t.reference_solve_s
     return ((t.reference_ddp_s or ms) if to == "ddp" else ms), ss
@@ -81,7 +84,6 @@ def training_stages(runs: dict) -> list[TrainStage]:
     """One :class:`TrainStage` per run and iteration of an experiment (``{run: LoopConfig}``, from
     :func:`sdp_cli.experiments.pipeline.loop_configs`), with its sizes."""
     from sdp_cli.data.sampling import steps_per_epoch
-    from sdp_cli.tasks import get_task
 
     out = []
     for run, cfg in runs.items():
@@ -112,8 +114,6 @@ def _synthetic_batch(method: str, dims: dict, T_h: int, B: int, gen: torch.Gener
 
 def _config(method: str, T_h: int, B: int, action: str | None, train=None):
     """The config a step is timed with: the run's (``train``) at batch size ``B``, or the method's defaults."""
-    from sdp_cli.policy.config import TrainConfig
-
     if train is not None:
         return train.with_options(batch_size=B)
     return TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
@@ -122,10 +122,6 @@ def _config(method: str, T_h: int, B: int, action: str | None, train=None):
 def _timed_runs(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None, device, train) -> list:
     """R runs as the trainer holds them (policy, AdamW, EMA, CPU generator; no LR schedule: a scalar update),
     each stepping its own synthetic batch; run ``r`` seeded ``r``."""
-    from types import SimpleNamespace
-
-    from sdp_cli.policy.registry import make_policy
-    from sdp_cli.tasks import get_task
     from sdp_cli.training.train import ema_for, optimizer_for
 
     task = get_task(task_name)
@@ -274,8 +270,6 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
 
 def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: int, budget_s: float, log,
               stack: int | None) -> tuple[pd.DataFrame, dict]:
-    from sdp_cli.tasks import get_task
-
     cals = {d: calibrate(train, d, budget_s / len(devices), log) for d in devices}
     rows: dict[str, dict] = {}
     for st in train:
@@ -288,7 +282,6 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
         for d in devices:
             r[f"train_{d}_s"] += st.steps * _interp(cals[d][st.key], st.B) + cals[d][("compile", st.key)]
     from sdp_cli.experiments.runner import pack
-    from sdp_cli.training.train_stack import DEFAULT_STACK
 
     stacked: dict = {}
     for job in (j for j in pack(runs, DEFAULT_STACK if stack is None else stack) if len(j) > 1):

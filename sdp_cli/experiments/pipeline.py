@@ -41,6 +41,14 @@ import yaml
 
 from sdp_cli.errors import SdpError
 from sdp_cli.experiments.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
+from sdp_cli.policy.config import options
+from sdp_cli.policy.config import option_type
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, from_group
+from sdp_cli.policy.config import TrainConfig
+from sdp_cli.seeds import check_loop_seed
+from sdp_cli.data.artifacts import check_writable
+from sdp_cli.data.artifacts import atomic_write_bytes
+from sdp_cli.policy.config import RENAMED
 
 #: training options a group sets with its own keys (a sweep: ``methods``, ``seeds``; or the group-level
 #: ``epochs``, ``horizon``, ``save_at``, of the same names); ``train:`` may set every other one
@@ -50,15 +58,11 @@ _GROUP_OWNED = {"method", "epochs", "seed", "horizon", "save_at"}
 def train_option_names() -> set[str]:
     """The keys a group's ``train:`` may set: the training options (:func:`sdp_cli.policy.config.options`)
     not owned by the group."""
-    from sdp_cli.policy.config import options
-
     return set(options()) - _GROUP_OWNED
 
 
 def train_option_type(name: str) -> str:
     """The :func:`sdp_cli.experiments.experiment.type_ok` spec of a training option, from its field's annotation."""
-    from sdp_cli.policy.config import option_type
-
     base, item, optional = option_type(name)
     return (f"[{item.__name__}]" if item is not None else base.__name__) + ("?" if optional else "")
 
@@ -74,8 +78,6 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
         where = group_where(name, gi)
         bad = set(g["train"] or {}) - train_option_names()
         if bad:
-            from sdp_cli.policy.config import RENAMED
-
             hint = "".join(f" ({k} is now {RENAMED[k]})" for k in sorted(bad) if k in RENAMED)
             raise SdpError(f"{where}: unknown train option(s) {sorted(bad)}{hint}; known: "
                            f"{', '.join(sorted(train_option_names()))}")
@@ -96,9 +98,6 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821
     from sdp_cli.algorithm.loop import LoopConfig
-    from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, from_group
-    from sdp_cli.policy.config import TrainConfig
-    from sdp_cli.seeds import check_loop_seed
 
     check_loop_seed(seed, "seed", g["n_algo"])   # the loop's rule (collection seeds) before the trainer's
 
@@ -114,8 +113,6 @@ def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: 
     returns ``{"runs": n}``. The experiment's settings are DVC parameters of ``pipelines/NAME.yaml`` itself
     (``dvc.yaml``'s stage ``group``): ``dvc exp run -S 'pipelines/NAME.yaml:groups.GROUP.epochs=100'``,
     ``dvc params diff``, ``dvc exp show``."""
-    from sdp_cli.data.artifacts import check_writable
-
     spec = load_experiment(name, root)
     n = len(loop_configs(name, spec))
     check_writable(params_path)   # a regular file or none (a fifo would block the read below)
@@ -127,7 +124,6 @@ def select_experiment(name: str, params_path: Path = Path("params.yaml"), root: 
     header = ("# The experiment `dvc repro` runs: pipelines/<experiment>.yaml, whose settings are DVC parameters\n"
               "# (dvc exp run -S 'pipelines/small.yaml:groups.pendulum-sdp-dp.epochs=100'). Written by\n"
               "# `sdp pipeline NAME`.\n")
-    from sdp_cli.data.artifacts import atomic_write_bytes
 
     atomic_write_bytes(params_path, lambda f: f.write((header + yaml.safe_dump(params, sort_keys=False)).encode()))
     return {"runs": n}

@@ -27,10 +27,22 @@ import os
 import sys
 from pathlib import Path
 from typing import Callable
+import multiprocessing as mp
+import fcntl
+import functools
+import time
+import shutil
 
 import pandas as pd
 
 from sdp_cli.errors import SdpError
+from sdp_cli.execution.executor import error_status
+from sdp_cli.training.train_stack import train_stack
+from sdp_cli.training.train_stack import stack_key, stackable
+from sdp_cli.execution.executor import check_executor_options
+from sdp_cli.data.artifacts import ensure_dir
+from sdp_cli.execution.executor import error_status, make_executor
+from sdp_cli.training.train_stack import DEFAULT_STACK
 
 #: environment defaults of ``sdp pipeline --run`` (so that the DVC stage's command, and with it
 #: its hash, is the same on a laptop and on a cluster)
@@ -40,8 +52,6 @@ ENV_EXECUTOR, ENV_WORKERS, ENV_SCHEDULER = "SDP_EXECUTOR", "SDP_WORKERS", "SDP_S
 def _leave_if_pool_worker() -> None:
     """A pool worker stopped by Ctrl-C/SIGTERM has written its checkpoints at a step boundary: it exits (130)
     without a traceback; elsewhere the ``KeyboardInterrupt`` goes on."""
-    import multiprocessing as mp
-
     if mp.parent_process() is not None:
         os._exit(130)
 
@@ -76,10 +86,8 @@ def run_stack_job(configs: list[dict], outs: list[str], device: str = "auto") ->
     resumes where it stopped (the datasets and checkpoints that exist are kept)."""
     import torch
 
-    from sdp_cli.execution.executor import error_status
     from sdp_cli.algorithm.loop import LoopConfig, begin_loop, iteration_data, run_loop, train_done
     from sdp_cli.training.train import resolve_device
-    from sdp_cli.training.train_stack import train_stack
 
     torch.set_num_threads(1)
     cfgs = [LoopConfig.from_dict(c, device=str(resolve_device(device))) for c in configs]
@@ -145,8 +153,6 @@ def pack(runs: dict, stack: int) -> list[list[str]]:
     1.25-1.35x the time on padding rows (``bench/stack_packing.py``). Stacks first, the larger datasets first
     within a training config (the longest jobs start first), then the runs alone; the same experiment gives the
     same jobs on every machine."""
-    from sdp_cli.training.train_stack import stack_key, stackable
-
     groups: dict = {}
     alone: list[list[str]] = []
     for name, cfg in runs.items():
@@ -201,7 +207,6 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     is resumed. ``job``: the per-run function (tests substitute one that kills its worker once). ``stack``: runs
     per stack of compatible runs (:func:`pack`; default :data:`sdp_cli.training.train_stack.DEFAULT_STACK`,
     1: every run alone)."""
-    from sdp_cli.execution.executor import check_executor_options
     from sdp_cli.experiments.experiment import load_experiment
     from sdp_cli.experiments.pipeline import loop_configs
 
@@ -231,10 +236,7 @@ def runner_lock(out: Path):
     refuses with one line naming the owner's pid instead of training the same runs twice at once. An
     ``flock``: released by the kernel when its holders die (no stale lock after a ``kill -9``); the pool
     workers inherit it, so it is held while any of them still writes."""
-    import fcntl
-
     path = lock_path(out)
-    from sdp_cli.data.artifacts import ensure_dir
 
     ensure_dir(path.parent, "runs' parent folder")
     while True:
@@ -271,7 +273,6 @@ def runner_lock(out: Path):
 
 
 def _run_group(name, runs, out, executor, workers, scheduler, device, only, restart_changed, log, job, stack=None):
-    from sdp_cli.execution.executor import error_status, make_executor
     from sdp_cli.algorithm.loop import check_resume
     from sdp_cli.progress import count_progress
 
@@ -287,9 +288,7 @@ def _run_group(name, runs, out, executor, workers, scheduler, device, only, rest
             moved = supersede(out / key)
             log(f"  {key}: {str(e).split(': ', 1)[-1].removesuffix('; use another --out')}; moved the old run "
                 f"to {moved} and starting it over")
-    import functools
 
-    from sdp_cli.training.train_stack import DEFAULT_STACK
 
     jobs = pack(runs, DEFAULT_STACK if stack is None else stack)
     argsets = [([runs[k].to_dict() for k in job_keys], [str(out / k) for k in job_keys], device) for job_keys in jobs]
@@ -334,8 +333,6 @@ def superseded_dir(out: Path) -> Path:
 
 def supersede(run_dir: Path) -> Path:
     """Move a run folder aside (never delete it): to ``superseded/<experiment>/<run>-<UTC time>``."""
-    import time
-
     run_dir = Path(run_dir)
     dest_root = superseded_dir(run_dir.parent)
     dest_root.mkdir(parents=True, exist_ok=True)
@@ -344,7 +341,6 @@ def supersede(run_dir: Path) -> Path:
     while dest.exists():
         n += 1
         dest = dest_root / f"{run_dir.name}-{stamp}-{n}"
-    import shutil
 
     shutil.move(str(run_dir), str(dest))   # a rename on one file system
     return dest

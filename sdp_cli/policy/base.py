@@ -30,6 +30,9 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 import torch
 from torch import nn
+from sdp_cli.errors import SdpError
+from sdp_cli.tasks import get_task
+from sdp_cli.tasks.base import check_task_params
 
 if TYPE_CHECKING:
     from sdp_cli.policy.config import TrainConfig
@@ -54,8 +57,6 @@ class ChunkPlanning:
 
     def sampler_options(self, k_rollout: int | None = None) -> dict:
         """``{"k_rollout": k}`` with ``k`` in ``[1, K]`` (default ``K``), else a one-line ``SdpError``."""
-        from sdp_cli.errors import SdpError
-
         k = self.K if k_rollout is None else int(k_rollout)
         if not 1 <= k <= self.K:
             raise SdpError(f"k_rollout must be in [1, K] = [1, {self.K}], got {k}")
@@ -145,8 +146,6 @@ class Policy(nn.Module):
         if self.chunked and type(self).sampler_steps(self.config) is not None:   # the family declares a sampler
             return ChunkPlanning.sampler_options(self, k_rollout)
         if k_rollout is not None:
-            from sdp_cli.errors import SdpError
-
             raise SdpError(f"k_rollout (denoising steps at rollout) applies to diffusion policies; "
                            f"{self.method!r} has no sampler")
         return {}
@@ -163,8 +162,6 @@ class Policy(nn.Module):
         """Attach the checkpoint's task (checked against its recorded identity) and metadata; move to
         ``device`` in eval mode. Returns self."""
         from sdp_cli.data.chunks import task_with_action
-        from sdp_cli.tasks import get_task
-        from sdp_cli.tasks.base import check_task_params
 
         self.device = torch.device(device)
         self.action = ck["action"]

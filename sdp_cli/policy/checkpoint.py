@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+import sys
 
 import torch
 
 from sdp_cli.data.artifacts import atomic_write_bytes, file_sha256, runtime_provenance  # noqa: F401 (re-export)
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
+from sdp_cli.policy.registry import make_policy
 
 FORMAT = "sdp-policy"
 FORMAT_VERSION = 2
@@ -36,8 +38,6 @@ def canonical(obj):
     pickle memoizes objects by identity, so equal state must be equal object graphs to give equal bytes (a
     resumed optimizer's ``"step"`` keys were strings of their own where a fresh one's were the same object
     as the checkpoint's ``"step"`` key, and the checkpoints of equal runs differed)."""
-    import sys
-
     if isinstance(obj, torch.Tensor):
         return obj.detach().clone().contiguous()
     if isinstance(obj, str):
@@ -111,8 +111,6 @@ def migrate(ck: dict) -> dict:
 def policy_from_checkpoint(ck: dict, use_ema: bool = True):
     """The checkpoint's policy object (:func:`~sdp_cli.policy.registry.make_policy`) with its EMA weights
     (``use_ema``, when saved) or its raw ones; not bound to a task (:meth:`Policy.bind`)."""
-    from sdp_cli.policy.registry import make_policy
-
     policy = make_policy(TrainConfig.from_dict(ck["config"]), ck["dims"])
     policy.load_state_dict(ck["ema_model"] if use_ema and ck.get("ema_model") is not None else ck["model"])
     return policy

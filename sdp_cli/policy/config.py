@@ -25,9 +25,13 @@ from __future__ import annotations
 
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, get_type_hints
+import types
+import typing
 
 from sdp_cli.errors import SdpError
 from sdp_cli.rules import check_fields, rule
+from sdp_cli.policy.registry import get_method
+from sdp_cli.seeds import check_seed
 
 SOBOLEV_MODES = ("jvp", "vjp")
 SOBOLEV_PATHS = ("cond", "total")
@@ -149,22 +153,16 @@ class TrainConfig:
     @property
     def policy_class(self):
         """The method's policy class (:mod:`sdp_cli.policy.registry`): data, network, loss, sampling."""
-        from sdp_cli.policy.registry import get_method
-
         return get_method(self.method).policy_class
 
     @property
     def chunked(self) -> bool:
         """A chunked method: plans action chunks, Algorithm 2 (the method's registration says so)."""
-        from sdp_cli.policy.registry import get_method
-
         return get_method(self.method).chunked
 
     @property
     def uses_sobolev(self) -> bool:
         """The method trains with the Sobolev term (needs the dataset's gains)."""
-        from sdp_cli.policy.registry import get_method
-
         return get_method(self.method).sobolev
 
     # ------------------------------------------------------------------ options and storage
@@ -253,9 +251,6 @@ def option_field(name: str):
 def option_type(name: str) -> tuple[type, type | None, bool]:
     """``(type, item type, optional)`` of an option's annotation: ``int | None`` -> ``(int, None, True)``,
     ``list[int]`` -> ``(list, int, False)``."""
-    import types
-    import typing
-
     ann = option_field(name)[0]
     optional = typing.get_origin(ann) in (typing.Union, types.UnionType)
     base = next(a for a in typing.get_args(ann) if a is not type(None)) if optional else ann
@@ -266,9 +261,6 @@ def option_type(name: str) -> tuple[type, type | None, bool]:
 
 def check(cfg: TrainConfig) -> None:
     """Every rule a config obeys (one :class:`SdpError` naming the option)."""
-    from sdp_cli.policy.registry import get_method
-    from sdp_cli.seeds import check_seed
-
     p, o, s = cfg.policy, cfg.optim, cfg.sobolev
     get_method(p.method)   # a registered method (sdp_cli.policy.registry), else one clear error
     check_seed(cfg.seed)

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from sdp_cli.policy.tangent_ops import group_norm_jvp, mish_jvp
+from sdp_cli.policy.compiling import compiled
 
 
 # ------------------------------------------------------- tangent propagation
@@ -292,7 +293,5 @@ def compile_unet(net: ConditionalUnet1D) -> None:
     """Compile ``net.forward`` and ``net.forward_jvp`` in place (:func:`sdp_cli.policy.compiling.compiled`:
     inductor, the shared cache); parameters and state dict stay the network's. The hand-written tangent pass traces without graph
     breaks (its custom autograd functions included)."""
-    from sdp_cli.policy.compiling import compiled
-
     net.forward = compiled(net.forward)
     net.forward_jvp = compiled(net.forward_jvp)

@@ -26,6 +26,8 @@ commit that produced it.
 from __future__ import annotations
 
 from pathlib import Path
+import shutil
+import tempfile
 
 import pandas as pd
 
@@ -38,6 +40,7 @@ from sdp_cli.report.rows import largest_budget, loop_t_a, method_variants, newes
 from sdp_cli.report.runs import PATH_COLUMNS, load_runs, run_revisions
 from sdp_cli.report.figures.style import save_csv
 from sdp_cli.report.versions import with_results_version
+from sdp_cli.data.artifacts import IGNORED_TIMINGS
 
 
 def current_runs(experiment: str, params: Path = Path("params.yaml")) -> set[str] | None:
@@ -69,11 +72,6 @@ def make_report(runs: str | Path, out: str | Path, experiment: str | None = None
 
     All or nothing: the files are written into a hidden folder beside ``out`` and moved into ``out`` once every
     one is written, so an error or an interrupt midway leaves the earlier report as it was."""
-    import shutil
-    import tempfile
-
-    from sdp_cli.data.artifacts import IGNORED_TIMINGS
-
     runs, out = Path(runs), Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.report-", dir=out.parent))

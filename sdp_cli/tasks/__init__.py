@@ -37,6 +37,9 @@ from typing import Callable
 
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks.base import Task
+from sdp_cli.tasks.pendulum import PendulumTask
+from sdp_cli.tasks.quadrotor import COLUMNS, QuadrotorTask
+from sdp_cli.tasks.ur5 import VARIANTS, Ur5Task
 
 _REGISTRY: dict[str, tuple[Callable[..., Task], str]] = {}
 ENTRY_POINT_GROUP = "sdp.tasks"
@@ -139,8 +142,6 @@ def _load_env_modules() -> None:
 
 
 def _register_builtin() -> None:
-    from sdp_cli.tasks.pendulum import PendulumTask
-
     register("pendulum", lambda **kw: PendulumTask(n_links=1, **kw),
              "single pendulum swing-up, torque control, |u| <= 25")
     register("double_pendulum", lambda **kw: PendulumTask(n_links=2, **kw),
@@ -149,9 +150,6 @@ def _register_builtin() -> None:
 
 
 def _register_ur5_quadrotor() -> None:
-    from sdp_cli.tasks.quadrotor import COLUMNS, QuadrotorTask
-    from sdp_cli.tasks.ur5 import VARIANTS, Ur5Task
-
     init = {False: "q0 near the home pose", True: "q0 anywhere in [-pi, pi]^6"}
     tgt = {False: "fixed ee target", True: "random reachable ee target"}
     for name, (r_init, r_tgt) in VARIANTS.items():

@@ -33,6 +33,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from abc import ABC, abstractmethod
+import json
 
 import casadi as ca
 import numpy as np
@@ -310,7 +311,6 @@ def check_task_params(task: Task, stored: dict | None, what: str) -> None:
     """Refuse an artifact (``what``) whose recorded task parameters differ from ``task`` as built here."""
     if stored is None:
         return
-    import json
 
     def norm(d):
         return json.loads(json.dumps(d, sort_keys=True, default=float))

@@ -9,6 +9,8 @@ import functools
 
 import numpy as np
 import pinocchio as pin
+from sdp_cli.tasks.conversion import InverseDynamicsController, TrackingController, check_conversion
+import casadi as ca
 
 
 class PolicyConventions:
@@ -95,8 +97,6 @@ class PolicyConventions:
         ``actions (n, S, n_action)`` the rows to play; call it as ``controller(x (n, nx), s) -> u (n, nu)``.
         ``conversion``: ``inverse-dynamics`` or ``tracking`` (:mod:`sdp_cli.tasks.conversion`; None: the
         task's :attr:`default_conversion`). Torque actions are clipped and played under both."""
-        from sdp_cli.tasks.conversion import InverseDynamicsController, TrackingController, check_conversion
-
         conversion = check_conversion(conversion) or self.default_conversion
         if self.action == "u" or conversion == "inverse-dynamics":
             return InverseDynamicsController(self, actions)
@@ -131,8 +131,6 @@ class PolicyConventions:
 
     @functools.cached_property
     def _f_tangent_jacobians(self):
-        import casadi as ca
-
         x, u, dx = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu), ca.SX.sym("dx", self.ndx)
         f = self.f_step(self.f_integrate(x, dx), u)
         zero = ca.DM.zeros(self.ndx)

@@ -23,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 from typing import Callable
+import shutil
 
 import torch
 
@@ -34,6 +35,7 @@ from sdp_cli.data.sampling import epoch_indices, steps_per_epoch as epoch_steps
 from sdp_cli.policy.checkpoint import CHECKPOINT_NAME, file_sha256, load_checkpoint, save_checkpoint
 from sdp_cli.policy.config import TrainConfig, resolved_alpha
 from sdp_cli.policy.registry import make_policy
+from sdp_cli.execution.interrupts import deferred
 
 
 
@@ -343,7 +345,6 @@ def drive(group, on_step: Callable[[int], None] | None = None,
     ``regroup`` (a stack): a run whose loss diverges leaves the group, ``failed[run.out]`` says why (its folder
     keeps its last checkpoint, or goes if it has none and this call made it), and the others go on in
     ``regroup(their runs)``; without it a divergence stops every run."""
-    from sdp_cli.execution.interrupts import deferred
     from sdp_cli.training.train_step import Diverged, step
 
     runs = list(group.runs)
@@ -365,8 +366,6 @@ def drive(group, on_step: Callable[[int], None] | None = None,
                     r.gen.set_state(g)
                 runs.remove(e.run)
                 if e.run.created and not e.run.ck_path.exists():
-                    import shutil
-
                     shutil.rmtree(e.run.out, ignore_errors=True)
                 group = regroup(runs)
                 continue
@@ -390,8 +389,6 @@ def _discard_if_failed_at_start(out: Path, created: bool, ck_path: Path):
         yield
     except SdpError:
         if created and not ck_path.exists():
-            import shutil
-
             shutil.rmtree(out, ignore_errors=True)
         raise
 

@@ -15,13 +15,12 @@ box-FDDP, :mod:`sdp_cli.trajopt.ddp`); :func:`get_to_solver` returns either with
 from sdp_cli.families import DEFAULT_TO, TO_FAMILIES
 from sdp_cli.trajopt.solver import (DEFAULT_MAX_ITER, DEFAULT_SOLVER, SOLVERS, SolveResult, TrajOptSolver,
                                     build_count, get_solver)
+from sdp_cli.errors import SdpError
 
 
 
 def check_to(to: str) -> None:
     """One clear error for an unknown family (before any work); every family solves every task."""
-    from sdp_cli.errors import SdpError
-
     if to not in TO_FAMILIES:
         raise SdpError(f"--to must be one of {', '.join(TO_FAMILIES)}; got {to!r}")
 

@@ -31,6 +31,7 @@ import signal
 import struct
 import time
 from typing import Any, Callable
+from sdp_cli.errors import SdpError
 
 DEFAULT_TIMEOUT = 300.0   #: seconds; a quadrotor-9 solve takes about 0.6 s, the slowest seen about 30 s
 _LEN = struct.Struct("!Q")
@@ -50,7 +51,6 @@ def solve_timeout() -> float:
     except ValueError:
         value = float("nan")
     if not (math.isfinite(value) and value >= 0):   # a typo is one clear error, not the default in silence
-        from sdp_cli.errors import SdpError
 
         raise SdpError(f"SDP_SOLVE_TIMEOUT must be a number of seconds >= 0 (0: unguarded), got {raw!r}")
     return value

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from sdp_cli.trajopt.solver import get_solver
 
 #: |du| below this (both FD and K delta) counts as "both zero" (relative error 0)
 ZERO_DU = 1e-9
@@ -47,8 +48,6 @@ def check_gains(task, res, steps, eps: float = 1e-4, seed: int = 0, solver: str 
 
     ``solver``/``tol``/``jit`` configure the reference re-solves (tight IPOPT by default).
     """
-    from sdp_cli.trajopt.solver import get_solver
-
     rng = np.random.default_rng(seed)
     out = []
     for t in steps:

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+import json
 
 import numpy as np
 import pandas as pd
@@ -66,8 +67,6 @@ def metrics_summary(loop_rows: pd.DataFrame) -> dict:
 
 
 def write_metrics(summary: dict, path: Path) -> Path:
-    import json
-
     return atomic_write_bytes(path, lambda f: f.write(json.dumps(summary, indent=2, sort_keys=True).encode()))
 
 

@@ -18,6 +18,8 @@ import numpy as np
 
 from sdp_cli.data.artifacts import atomic_write_bytes, check_writable, load_npz
 from sdp_cli.errors import SdpError
+from sdp_cli.rules import Range, check_value
+from sdp_cli.tasks import get_task
 
 _FORMATS = {".png", ".pdf", ".svg", ".jpg", ".jpeg"}
 
@@ -68,13 +70,11 @@ def plot_dataset(path: str | Path, out: str | Path, max_traj: int = 20, dpi: int
     out = Path(out)
     if out.suffix.lower() not in _FORMATS:
         raise SdpError(f"--out must end with one of {', '.join(sorted(_FORMATS))}, got {out.name!r}")
-    from sdp_cli.rules import Range, check_value
 
     check_value("--max-traj", max_traj, Range(ge=1))
     check_value("--dpi", dpi, Range(ge=1, le=2400))   # beyond: matplotlib's image size limit for a figure
     check_writable(out)
     arrays, meta = load_npz(path, kind="dataset")
-    from sdp_cli.tasks import get_task
 
     if "task" not in meta or "X" not in arrays or "xi" not in arrays:
         raise SdpError(f"{path}: dataset without task name, X or xi")

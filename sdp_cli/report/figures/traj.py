@@ -18,6 +18,7 @@ from sdp_cli.data.artifacts import load_npz
 from sdp_cli.report.figures.paper import _named
 from sdp_cli.report.rows import TO_FAMILIES, family_of, loop_t_a, method_label, split_family
 from sdp_cli.report.figures.style import COLORS, method_order, pyplot, save_fig
+from sdp_cli.tasks import get_task
 
 
 def _best_rollout(d: pd.DataFrame):
@@ -102,7 +103,6 @@ def trajectories(df: pd.DataFrame, task_name: str, out: Path, n_show: int = 4, n
     artifact's ``inst_base_X`` / ``inst_pol_X``.
     """
     from sdp_cli.report.figures.plot_dataset import _draw_columns_top, goal_point, trajectory_points
-    from sdp_cli.tasks import get_task
 
     d = df[df.task == task_name]
     families = {split_family(m)[1] for m in d.method}

@@ -41,6 +41,7 @@ from sdp_cli.report.ledger.verdicts import pct_text
 from sdp_cli.report.rows import TO_FAMILIES, last_iteration, newest_version, to_family, unfinished
 from sdp_cli.report.estimates import read_estimate
 from sdp_cli.report.versions import version_text
+from sdp_cli import RESULTS_HISTORY, RESULTS_VERSION
 
 
 def load_results(results: Path) -> dict[str, pd.DataFrame]:
@@ -190,8 +191,6 @@ def _share(x: float) -> str:
 def _version_lines(rows: list[dict]) -> list[str]:
     """The header's paragraph on results versions: the current one, and what changed after the oldest one
     a row reads (:data:`sdp_cli.RESULTS_HISTORY`)."""
-    from sdp_cli import RESULTS_HISTORY, RESULTS_VERSION
-
     used = set().union(*(r["versions"] for r in rows))
     lines = [f"Results version now: {RESULTS_VERSION} (`sdp_cli.RESULTS_VERSION`, what a run measures). The column "
              "*runs' results version* gives the version of the runs each row reads (recorded by a run since "
