@@ -16,7 +16,7 @@ LAYERS = {
     "algorithm": ("argmin", "collect", "evaluate", "loop", "loop_options", "refine", "rollout", "solve_jobs"),
     "training": ("stack_optim", "train", "train_stack", "train_step"),
     "experiments": ("estimate", "experiment", "pipeline", "runner"),
-    "execution": ("executor", "executor_base", "executor_dask", "interrupts", "kernels", "workers"),
+    "execution": ("executor", "executor_base", "executor_dask", "interrupts", "workers"),
 }
 #: old import path -> new one
 MOVED = {f"sdp_cli.{m}": f"sdp_cli.{layer}.{m}" for layer, mods in LAYERS.items() for m in mods}

@@ -104,7 +104,7 @@ def test_packages_have_no_import_cycle_and_tasks_import_nothing_above_them():
 
 
 #: the layers of the folders, bottom up: a package may import its own layer's helpers and the layers below
-LAYERS = [{"sdp_cli.errors", "sdp_cli.families", "sdp_cli.rules", "sdp_cli.seeds", "sdp_cli.execution",
+LAYERS = [{"sdp_cli.errors", "sdp_cli.families", "sdp_cli.rules", "sdp_cli.seeds", "sdp_cli.kernels", "sdp_cli.execution",
            "sdp_cli.dynamics"},
           {"sdp_cli.tasks", "sdp_cli.trajopt"}, {"sdp_cli.data", "sdp_cli.losses"}, {"sdp_cli.policy"},
           {"sdp_cli.training"}, {"sdp_cli.algorithm"}, {"sdp_cli.experiments", "sdp_cli.migrate"},

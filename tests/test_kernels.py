@@ -1,4 +1,4 @@
-"""CPU kernels capped at AVX2 (sdp_cli/execution/kernels.py): the same seed trains the same weights on any x86 CPU with AVX2.
+"""CPU kernels capped at AVX2 (sdp_cli/kernels.py): the same seed trains the same weights on any x86 CPU with AVX2.
 
 Measured 2026-12-04 (`python bench/cpu_bytes.py`, AMD EPYC with AVX-512): oneDNN's own kernel choice changed a
 run's weights; fig4's quadrotor-0 DP seed 0 scored 637 there against 627 from an earlier machine, and `dvc repro`
@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from sdp_cli.execution.kernels import PORTABLE, cap_cpu_kernels, cpu_kernels, cpu_simd
+from sdp_cli.kernels import PORTABLE, cap_cpu_kernels, cpu_kernels, cpu_simd
 
 #: trains a tiny SDP policy (seed 0, 1 thread) in a fresh process and prints the SHA-256 of its EMA weights
 TRAIN = """
@@ -62,7 +62,7 @@ def test_importing_sdp_cli_caps_a_fresh_process_and_artifacts_record_it(tmp_path
     code = ("import json, os, sys, numpy as np, sdp_cli\n"
             "from sdp_cli.data.artifacts import save_npz, load_npz\n"
             "_, meta = load_npz(save_npz(sys.argv[1], {'x': np.zeros(2)}, kind='dataset'))\n"
-            "print(json.dumps([{k: os.environ.get(k) for k in sdp_cli.execution.kernels.PORTABLE}, "
+            "print(json.dumps([{k: os.environ.get(k) for k in sdp_cli.kernels.PORTABLE}, "
             "meta['provenance']['cpu_kernels']]))")
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "a.npz")], env=env, capture_output=True,
                          text=True, check=True).stdout

@@ -48,7 +48,7 @@ def test_provenance_records_threads_and_cpu(tmp_path):
     rec = load_timing(tmp_path / "a.npz")["machine"]
     assert rec["cpu_model"]
     # the instruction sets that decide a training run's last bits (docs/artifacts.md), beside the CPU model
-    from sdp_cli.execution.kernels import cpu_simd
+    from sdp_cli.kernels import cpu_simd
 
     assert rec["cpu_simd"] == cpu_simd() and rec["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     assert "cpu_simd" not in prov and "torch_cpu_capability" not in prov

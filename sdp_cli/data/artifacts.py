@@ -40,7 +40,7 @@ import numpy as np
 from sdp_cli.data.writes import (artifact_writes, atomic_write_bytes, check_folder, check_regular,  # noqa: F401
                                  check_writable, ensure_dir)
 from sdp_cli.errors import SdpError
-from sdp_cli.execution.kernels import cpu_kernels, cpu_simd
+from sdp_cli.kernels import cpu_kernels, cpu_simd
 
 FORMAT_VERSION = 1
 _PACKAGES = ("sdp-cli", "numpy", "casadi", "pin", "example-robot-data", "torch", "diffusers")
@@ -116,8 +116,8 @@ def provenance() -> dict[str, Any]:
 
 def machine() -> dict[str, Any]:
     """The machine that wrote an artifact, kept in its timing sidecar: platform (kernel), CPU model, the CPU's
-    :data:`~sdp_cli.execution.kernels.SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen
-    dispatches to (capped at AVX2 by default: :mod:`sdp_cli.execution.kernels`)."""
+    :data:`~sdp_cli.kernels.SIMD_FLAGS` it has (``cpu_simd``) and, when torch is loaded, the vector level ATen
+    dispatches to (capped at AVX2 by default: :mod:`sdp_cli.kernels`)."""
     info = _cpuinfo()
     out: dict[str, Any] = {"platform": platform.platform(), "cpu_model": _cpu_model(info),
                            "cpu_simd": cpu_simd(info)}
@@ -146,7 +146,7 @@ def _cpu_model(cpuinfo: str) -> str:
 
 def runtime_provenance() -> dict[str, Any]:
     """:func:`provenance` plus what can change within a process: the CPU kernel caps in effect
-    (:mod:`sdp_cli.execution.kernels`), torch's CPU thread count and the CUDA device (when torch is loaded). Timing-free:
+    (:mod:`sdp_cli.kernels`), torch's CPU thread count and the CUDA device (when torch is loaded). Timing-free:
     equal for equal settings."""
     out = dict(provenance())
     out["cpu_kernels"] = cpu_kernels()

@@ -5,7 +5,7 @@ A cold compile of the U-Net's forward and tangent pass costs minutes of CPU (``b
 keeps what it compiled in its cache folder, here ``$SDP_COMPILE_CACHE`` (default ``$XDG_CACHE_HOME/sdp/inductor``,
 else ``~/.cache/sdp/inductor``) unless ``TORCHINDUCTOR_CACHE_DIR`` is set, so the next run of the same shapes, in
 any process, loads it in seconds. Inductor's generated kernels follow ``ATEN_CPU_CAPABILITY``, which
-:mod:`sdp_cli.execution.kernels` caps at AVX2, so a compiled run gives the same numbers on other x86 CPUs too.
+:mod:`sdp_cli.kernels` caps at AVX2, so a compiled run gives the same numbers on other x86 CPUs too.
 """
 
 from __future__ import annotations

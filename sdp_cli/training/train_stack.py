@@ -25,7 +25,7 @@ from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes on every machine
-#: with torch's CPU kernels capped: sdp_cli/execution/kernels.py)
+#: with torch's CPU kernels capped: sdp_cli/kernels.py)
 DEFAULT_STACK = 8
 
 
