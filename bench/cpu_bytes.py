@@ -5,7 +5,7 @@ printed: equal hashes mean the setting does not reach the run's arithmetic on th
     python bench/cpu_bytes.py [--task pendulum] [--n-traj 4] [--epochs 3] [--data DATASET.npz --method dp]
 
 - ``sdp's default``: no variable set, so ``import sdp_cli`` caps oneDNN, MKL and ATen at AVX2
-  (:mod:`sdp_cli.execution.kernels`, on a CPU with AVX2);
+  (:mod:`sdp_cli.kernels`, on a CPU with AVX2);
 - ``default again``: the same, in another process (a run is reproducible on one machine);
 - ``native ATen`` / ``native MKL`` / ``native oneDNN``: one library uncapped (``ATEN_CPU_CAPABILITY`` set to
   this CPU's level, ``MKL_CBWR=AUTO``, ``ONEDNN_MAX_CPU_ISA=ALL``), the others capped;
@@ -14,7 +14,7 @@ printed: equal hashes mean the setting does not reach the run's arithmetic on th
 On a CPU with AVX-512 a ``native`` hash other than the default's is what separated two machines' runs of one
 seed before the cap (docs/artifacts.md, "Same seed, other CPU"). Without ``--data`` a small dataset of ``--task``
 is collected first (``sdp collect``, in a temporary folder). Prints the CPU model, its SIMD flags
-(:func:`sdp_cli.execution.kernels.cpu_simd`) and torch's CPU capability beside the table.
+(:func:`sdp_cli.kernels.cpu_simd`) and torch's CPU capability beside the table.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def main() -> None:
     import torch
 
     from sdp_cli.data.artifacts import machine
-    from sdp_cli.execution.kernels import cpu_simd
+    from sdp_cli.kernels import cpu_simd
 
     base = {k: v for k, v in os.environ.items() if k not in CLEARED}
     with tempfile.TemporaryDirectory() as tmp:
