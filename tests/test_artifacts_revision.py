@@ -59,12 +59,14 @@ def test_evaluation_manifest_names_the_code_that_computed_the_rows(tmp_path, mon
 
     import numpy as np
 
+    import sdp_cli.algorithm.evaluate as ev
     import sdp_cli.data.artifacts as art
     from sdp_cli.algorithm.evaluate import evaluation_artifacts, manifest_path, write_evaluation
 
     def at(rev):      # provenance is cached per process: patch it and the revision the manifest falls back on
         monkeypatch.setattr(art, "provenance", lambda: {"git_rev": rev})
         monkeypatch.setattr(art, "code_revision", lambda: rev)
+        monkeypatch.setattr(ev, "code_revision", lambda: rev)      # (the name evaluate.py calls)
 
     def saved_at(rev, path, kind):
         at(rev)

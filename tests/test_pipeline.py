@@ -181,21 +181,21 @@ def test_estimate_measures_every_step_on_one_thread(monkeypatch):
 def test_estimate_times_a_loops_to_by_its_family(monkeypatch):
     """`--estimate` charges a loop's TO at its family's reference time: box-FDDP's where the task gives one
     (results/tasks/TO_alone.md), multiple shooting's otherwise (a user's task); single shooting's either way."""
-    from sdp_cli import tasks
+    from sdp_cli.experiments import estimate
     from sdp_cli.experiments.estimate import to_reference
 
     assert to_reference("double_pendulum") == (0.010, 0.155)
     assert to_reference("double_pendulum", "ddp") == (0.045, 0.155)
     assert to_reference("ur5-fixed", "ddp")[0] > to_reference("ur5-fixed")[0]
     assert to_reference("quadrotor-9", "ddp") == (7.4, 120.0)      # the augmented-Lagrangian DDP: 12x fatrop's
-    real = tasks.get_task
+    real = estimate.get_task
 
     def without_ddp_time(name, **kw):
         t = real(name, **kw)
         t.reference_ddp_s = None
         return t
 
-    monkeypatch.setattr(tasks, "get_task", without_ddp_time)
+    monkeypatch.setattr(estimate, "get_task", without_ddp_time)
     assert to_reference("quadrotor-9", "ddp") == to_reference("quadrotor-9") == (0.63, 120.0)   # fatrop's
 
 
