@@ -37,6 +37,7 @@ Prints one row per task and solver and the time ratio ours / crocoddyl.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -282,6 +283,9 @@ def main() -> None:
     ap.add_argument("--ddp-stop", default="ours", help="our box-FDDP's stopping measure: ours or crocoddyl "
                     "(|d1 + d2/2| <= 1e-9, crocoddyl 3.x's rule: iterations under one rule)")
     a = ap.parse_args()
+    if "SDP_SOLVE_TIMEOUT" not in os.environ:   # fatrop in this process, so that its CPU time is this process's
+        os.environ["SDP_SOLVE_TIMEOUT"] = "0"
+        print("SDP_SOLVE_TIMEOUT=0: fatrop solves in this process (unguarded), timed in its CPU time")
     import crocoddyl
     import pandas as pd
     import pinocchio as pin
