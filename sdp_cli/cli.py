@@ -275,7 +275,7 @@ def pipeline_cmd(
     run: Annotated[bool, typer.Option("--run", help="Run every run of the experiment now (each an `sdp loop` in OUT/<run>/), in parallel on the executor; resumable. This is what the DVC stage `group` runs.")] = False,
     status: Annotated[bool, typer.Option("--status", help="Print where each run stands in OUT (iterations evaluated, done / in progress / not started); reads only.")] = False,
     out: Annotated[Optional[Path], typer.Option(help="--run, --status: folder of the runs (default runs/<experiment>).")] = None,
-    only: Annotated[Optional[str], typer.Option(help="--run: comma-separated run names to run (default all).")] = None,
+    only: Annotated[Optional[str], typer.Option(help="--run, --estimate: comma-separated run names to run or estimate (default all).")] = None,
     restart_changed: Annotated[bool, typer.Option("--restart-changed", help="--run: start over a run whose folder holds other settings (the experiment file changed) instead of refusing; what the DVC stage does.")] = False,
     workers: Annotated[Optional[int], typer.Option(help="--run: worker processes (default $SDP_WORKERS, else all cores); --estimate: parallel workers for the total (default 2).")] = None,
     executor: Annotated[Optional[str], typer.Option(help="--run: local (process pool; default $SDP_EXECUTOR, else local) or dask.")] = None,
@@ -295,7 +295,8 @@ def pipeline_cmd(
     if estimate:
         from sdp_cli.experiments.estimate import estimate as run_estimate, format_estimate
 
-        df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True), stack=stack)
+        df, totals = run_estimate(experiment, workers or 2, log=lambda s: typer.echo(s, err=True), stack=stack,
+                                  only=[s for s in (only or "").split(",") if s] or None)
         typer.echo(format_estimate(experiment, df, totals))
         return
     if run:
@@ -303,7 +304,6 @@ def pipeline_cmd(
 
         check_folder(out, "runs folder")
         if os.environ.get("DVC_STAGE"):   # run by `dvc repro`: a kill -9 of dvc takes this runner (and so its workers)
-
             die_with_parent(os.getppid())
 
         names = [s for s in (only or "").split(",") if s] or None

@@ -216,3 +216,23 @@ def test_estimate_times_steps_in_cpu_time_not_wall_time():
 
     assert _median_seconds(waits, 0.1) < 0.005
     assert _median_seconds(works, 0.1) >= 0.019
+
+
+def test_estimate_only_estimates_the_runs_named(monkeypatch):
+    """`sdp pipeline NAME --estimate --only a,b` estimates those runs (stacked among themselves), not all of them;
+    an unknown name is one error line, as with --run."""
+    import pandas as pd
+
+    from sdp_cli.experiments import estimate as E
+
+    seen = {}
+
+    def fake(runs, train, devices, workers, budget_s, log, stack):
+        seen["runs"] = sorted(runs)
+        return pd.DataFrame(), {}
+
+    monkeypatch.setattr(E, "_estimate", fake)
+    E.estimate("small", only=["pendulum-sdp-n10-s0"])
+    assert seen["runs"] == ["pendulum-sdp-n10-s0"]
+    with pytest.raises(SdpError, match="has no run nope"):
+        E.estimate("small", only=["nope"])

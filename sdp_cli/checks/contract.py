@@ -221,7 +221,6 @@ def check_task(name: str, n_traj: int = 2, cases: str | None = None, solve: bool
         arrays = solve_instances(t, n_traj)
         rows += optimum_rows(t, pairs, n_traj, arrays)[0]
         if t.action != "u":   # how much chunk error each conversion forgives (informs; never fails the check)
-
             noise = noise_rows_text(t, tolerance_table(t, [arrays], pairs))
     width = max(len(r["check"]) for r in rows)
     for r in rows:

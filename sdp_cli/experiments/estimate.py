@@ -244,10 +244,11 @@ def _interp(cal: tuple, B: int) -> float:
 
 
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
-             root: Path = Path("."), stack: int | None = None) -> tuple[pd.DataFrame, dict]:
+             root: Path = Path("."), stack: int | None = None, only: list[str] | None = None) -> tuple[pd.DataFrame, dict]:
     """Per-run estimate of experiment ``name`` and the totals (see the module docstring). Runs that
     ``sdp pipeline --run`` trains as one stack (``stack`` runs at most, :func:`sdp_cli.experiments.runner.pack`) share
-    the measured time of a stacked step (:func:`stacked_step_seconds`) instead of one step each."""
+    the measured time of a stacked step (:func:`stacked_step_seconds`) instead of one step each. ``only``: the run
+    names to estimate (``--only``, as ``--run`` takes it; default all), stacked among themselves."""
     from sdp_cli.experiments.experiment import load_experiment
     from sdp_cli.experiments.pipeline import loop_configs
 
@@ -256,6 +257,11 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
     if stack is not None and stack <= 0:
         raise SdpError(f"--stack must be >= 1, got {stack}")
     runs = loop_configs(name, load_experiment(name, root))
+    if only:
+        unknown = sorted(set(only) - set(runs))
+        if unknown:
+            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+        runs = {k: v for k, v in runs.items() if k in set(only)}
     train = training_stages(runs)
     if not train:
         raise SdpError(f"experiment {name!r} has no training stage")

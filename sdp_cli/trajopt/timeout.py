@@ -51,7 +51,6 @@ def solve_timeout() -> float:
     except ValueError:
         value = float("nan")
     if not (math.isfinite(value) and value >= 0):   # a typo is one clear error, not the default in silence
-
         raise SdpError(f"SDP_SOLVE_TIMEOUT must be a number of seconds >= 0 (0: unguarded), got {raw!r}")
     return value
 
