@@ -250,7 +250,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
     the measured time of a stacked step (:func:`stacked_step_seconds`) instead of one step each. ``only``: the run
     names to estimate (``--only``, as ``--run`` takes it; default all), stacked among themselves."""
     from sdp_cli.experiments.experiment import load_experiment
-    from sdp_cli.experiments.pipeline import loop_configs
+    from sdp_cli.experiments.pipeline import check_only, loop_configs
 
     if workers <= 0:
         raise SdpError(f"workers must be > 0, got {workers}")
@@ -258,9 +258,7 @@ def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: 
         raise SdpError(f"--stack must be >= 1, got {stack}")
     runs = loop_configs(name, load_experiment(name, root))
     if only:
-        unknown = sorted(set(only) - set(runs))
-        if unknown:
-            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+        check_only(name, runs, only)
         runs = {k: v for k, v in runs.items() if k in set(only)}
     train = training_stages(runs)
     if not train:

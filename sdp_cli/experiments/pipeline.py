@@ -41,14 +41,10 @@ import yaml
 
 from sdp_cli.errors import SdpError
 from sdp_cli.experiments.experiment import check_group, group_items, group_where, load_experiment, run_name, type_ok
-from sdp_cli.policy.config import options
-from sdp_cli.policy.config import option_type
 from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, from_group
-from sdp_cli.policy.config import TrainConfig
+from sdp_cli.data.artifacts import atomic_write_bytes, check_writable
+from sdp_cli.policy.config import RENAMED, TrainConfig, option_type, options
 from sdp_cli.seeds import check_loop_seed
-from sdp_cli.data.artifacts import check_writable
-from sdp_cli.data.artifacts import atomic_write_bytes
-from sdp_cli.policy.config import RENAMED
 
 #: training options a group sets with its own keys (a sweep: ``methods``, ``seeds``; or the group-level
 #: ``epochs``, ``horizon``, ``save_at``, of the same names); ``train:`` may set every other one
@@ -94,6 +90,13 @@ def loop_configs(name: str, spec: dict) -> dict[str, "LoopConfig"]:  # noqa: F82
             except SdpError as e:
                 raise SdpError(f"{where}: {e}") from None
     return runs
+
+
+def check_only(name: str, runs: dict, only: list[str] | None) -> None:
+    """``--only``'s run names must be runs of experiment ``name`` (``runs``: its :func:`loop_configs`)."""
+    unknown = sorted(set(only or ()) - set(runs))
+    if unknown:
+        raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
 
 
 def _loop_config(g: dict, method: str, seed: int, n_traj: int) -> "LoopConfig":  # noqa: F821

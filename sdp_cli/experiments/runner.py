@@ -208,15 +208,12 @@ def run_group(name: str, out: str | os.PathLike, executor: str | None = None, wo
     per stack of compatible runs (:func:`pack`; default :data:`sdp_cli.training.train_stack.DEFAULT_STACK`,
     1: every run alone)."""
     from sdp_cli.experiments.experiment import load_experiment
-    from sdp_cli.experiments.pipeline import loop_configs
+    from sdp_cli.experiments.pipeline import check_only, loop_configs
 
     executor, workers, scheduler = executor_options(executor, workers, scheduler)
     check_executor_options(executor, workers, scheduler)
     runs = loop_configs(name, load_experiment(name, root))
-    if only:   # every refusal that needs no run folder comes before the lock (which would stay behind)
-        unknown = sorted(set(only) - set(runs))
-        if unknown:
-            raise SdpError(f"experiment {name!r} has no run {', '.join(unknown)}; runs: {', '.join(runs)}")
+    check_only(name, runs, only)   # every refusal that needs no run folder comes before the lock (which would stay behind)
     if stack is not None and stack <= 0:
         raise SdpError(f"--stack must be >= 1, got {stack}")
     with runner_lock(Path(out)):

@@ -106,15 +106,13 @@ class DenseCall:
     sparse input is called the usual way."""
 
     def __init__(self, f):
-        self.densified = all(f.sparsity_in(i).is_dense() for i in range(f.n_in())) and \
-            not all(f.sparsity_out(i).is_dense() for i in range(f.n_out()))
+        dense_in = all(f.sparsity_in(i).is_dense() for i in range(f.n_in()))
+        self.densified = dense_in and not all(f.sparsity_out(i).is_dense() for i in range(f.n_out()))
         if self.densified:
             ins = [ca.MX.sym(f"in{i}", f.sparsity_in(i)) for i in range(f.n_in())]
-            outs = f.call(ins)
-            f = ca.Function(f.name() + "_dense", ins, [ca.densify(o) for o in outs])
+            f = ca.Function(f.name() + "_dense", ins, [ca.densify(o) for o in f.call(ins)])
         self.f = f
-        self.dense = all(f.sparsity_in(i).is_dense() for i in range(f.n_in())) and \
-            all(f.sparsity_out(i).is_dense() for i in range(f.n_out()))
+        self.dense = dense_in          # (its outputs are dense now)
         if self.dense:
             self.buf, self.run = f.buffer()
 
