@@ -41,7 +41,7 @@ def _step(task, method, T_h, B, R, compile_on):
         if R == 1:
             est.step_seconds(task, method, T_h, B, train=cfg)
         else:
-            est.stacked_step_seconds(task, method, T_h, B, R, train=cfg)
+            est.stacked_step_seconds([(task, method, T_h, None, cfg)] * R, B)
     finally:
         est._median_seconds = real
     return steps[0]

@@ -35,7 +35,7 @@ def stacked(method: str, B: int, R: int) -> None:
     steps = []
     real, est._median_seconds = est._median_seconds, lambda step, *_: steps.append(step) or 1.0
     try:
-        est.stacked_step_seconds("ur5-fixed", method, 32, B, R)   # builds the stack, hands back its step
+        est.stacked_step_seconds([("ur5-fixed", method, 32, None, None)] * R, B)   # builds the stack, hands back its step
     finally:
         est._median_seconds = real
     for _ in range(3):

@@ -168,7 +168,7 @@ def trainer_table(a, dev) -> None:
                     old = 1 / step_seconds(task, method, T_h, B, device=str(dev), max_s=a.rounds)
                 for R in (int(r) for r in a.stacks.split(",")):
                     solo = 1 / step_seconds(task, method, T_h, B, device=str(dev), max_s=a.rounds)
-                    st = R / stacked_step_seconds(task, method, T_h, B, R, device=str(dev), max_s=a.rounds)
+                    st = R / stacked_step_seconds([(task, method, T_h, None, None)] * R, B, device=str(dev), max_s=a.rounds)
                     print(f"| {task} | {method} | {B} | {R} | {old:.1f} | {solo:.1f} | {st:.1f} | {st / solo:.2f}x | "
                           f"{st / old:.2f}x |", flush=True)
 

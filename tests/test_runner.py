@@ -228,10 +228,10 @@ def test_compatible_runs_train_as_one_stack_and_equal_their_solo_runs(root):
 
 
 LOOPS = """
-description: two-iteration loops, two seeds
+description: two-iteration loops of one network shape, two methods, two seeds, two T_a
 groups:
   - task: pendulum
-    methods: [dp]
+    methods: [sdp, dp]
     seeds: [0, 1]
     n_traj_schedule: [2, 3]
     n_algo: 2
@@ -240,12 +240,22 @@ groups:
     t_a: 4
     n_test: 2
     train: {batch_size: 8, down_dims: [8, 16], n_groups: 4, step_embed_dim: 8}
+  - task: pendulum
+    methods: [dp]
+    seeds: [2]
+    n_traj_schedule: [2, 3]
+    n_algo: 2
+    epochs: 2
+    horizon: 8
+    t_a: 3
+    n_test: 2
+    train: {batch_size: 8, down_dims: [8, 16], n_groups: 4, step_embed_dim: 8}
 """
 
 
 def test_loops_of_several_iterations_train_as_one_stack_in_lockstep(root):
-    """Loops of as many iterations, buffer rule and dataset sizes stack too (issue "Training 2-3x faster"): at
-    each iteration every member collects (warm-started by its own previous policy) and merges its own buffer, then
+    """Loops of as many iterations, buffer rule and dataset sizes stack too (issue "Training 2-3x faster"), keyed
+    by network shape (SDP and DP, other seeds and T_a in one stack): at each iteration every member collects (warm-started by its own previous policy) and merges its own buffer, then
     the members train as one stack, each warm-started from its own previous policy. The evaluations equal the
     loops run alone, to float32 rounding (the stack's grouped kernels sum in another order)."""
     from sdp_cli.experiments.experiment import load_experiment
@@ -254,6 +264,7 @@ def test_loops_of_several_iterations_train_as_one_stack_in_lockstep(root):
 
     (root / "pipelines" / "loops.yaml").write_text(LOOPS)
     runs = loop_configs("loops", load_experiment("loops", root))
+    assert len(runs) == 5 and {c.method for c in runs.values()} == {"sdp", "dp"}
     assert pack(runs, 8) == [list(runs)] and pack(runs, 1) == [[r] for r in runs]
     lines = []
     solo = run_group("loops", root / "loops-solo", executor="local", workers=1, device="cpu", root=root,

@@ -38,11 +38,14 @@ def rows(run):
 
 def _members(method):
     # different datasets (n_traj), seeds, epochs (so one member finishes first), learning rates and the other
-    # optimisation settings each member keeps (clipping bound, weight decay, betas, EMA warm-up power)
-    return [(2, TrainConfig.of(method=method, seed=0, epochs=6, lr=1e-3, **TINY)),
-            (5, TrainConfig.of(method=method, seed=1, epochs=4, lr=3e-3, save_at=[2], grad_clip=0.05,
+    # optimisation settings each member keeps (clipping bound, weight decay, betas, EMA warm-up power);
+    # "mixed": one network shape, three losses (SDP with 2 projections on half its batch, DP, SDP by default)
+    m = ["sdp", "dp", "sdp"] if method == "mixed" else [method] * 3
+    extra = dict(sobolev_n_proj=2, sobolev_fraction=0.5) if method == "mixed" else {}
+    return [(2, TrainConfig.of(method=m[0], seed=0, epochs=6, lr=1e-3, **extra, **TINY)),
+            (5, TrainConfig.of(method=m[1], seed=1, epochs=4, lr=3e-3, save_at=[2], grad_clip=0.05,
                                weight_decay=1e-2, betas=[0.9, 0.99], ema_power=0.5, **TINY)),
-            (3, TrainConfig.of(method=method, seed=2, epochs=5, lr=1e-3, sobolev_alpha=0.5, **TINY))]
+            (3, TrainConfig.of(method=m[2], seed=2, epochs=5, lr=1e-3, sobolev_alpha=0.5, **TINY))]
 
 
 def _close(a, b, tol, lr=None):
@@ -67,7 +70,7 @@ def float64():
     torch.set_default_dtype(torch.float32)
 
 
-@pytest.mark.parametrize("method", ["sdp", "dp"])
+@pytest.mark.parametrize("method", ["sdp", "dp", "mixed"])
 def test_a_stacked_run_equals_the_same_run_trained_alone(data, tmp_path, method, float64):
     members = _members(method)
     solo = [train(data[n], tmp_path / f"solo{i}", c, device="cpu", progress=False, log=quiet)
@@ -85,7 +88,7 @@ def test_a_stacked_run_equals_the_same_run_trained_alone(data, tmp_path, method,
             assert float(y["loss"]) == pytest.approx(float(x["loss"]), rel=1e-5)
     assert (tmp_path / "st1" / "epoch_2.pt").is_file()
     pol = load_policy(tmp_path / "st2")                      # a member's checkpoint is a solo one
-    assert pol.method == method and pol.T_h == 8
+    assert pol.method == members[2][1].method and pol.T_h == 8
     # the same run in another stack (another companion, fewer members): the same result
     other = train_stack([data[3], data[2]], [tmp_path / "o2", tmp_path / "o0"], [members[2][1], members[0][1]],
                         log=quiet)
@@ -127,8 +130,9 @@ def test_a_killed_stack_resumes_every_member(data, tmp_path):
 
 def test_incompatible_runs_are_refused(data, tmp_path):
     a = TrainConfig.of(method="sdp", **TINY)
-    with pytest.raises(SdpError, match="cannot share a stack"):
-        train_stack([data[2], data[3]], [tmp_path / "a", tmp_path / "b"], [a, a.with_options(method="dp")], log=quiet)
+    for other in (a.with_options(horizon=16), a.with_options(batch_size=8), a.with_options(down_dims=[8, 8])):
+        with pytest.raises(SdpError, match="cannot share a stack"):   # another network shape or batch
+            train_stack([data[2], data[3]], [tmp_path / "a", tmp_path / "b"], [a, other], log=quiet)
     with pytest.raises(SdpError, match="not stackable"):
         train_stack([data[2]], [tmp_path / "c"], [a.with_options(sobolev_mode="vjp")], log=quiet)
 

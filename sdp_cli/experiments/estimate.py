@@ -119,16 +119,17 @@ def _config(method: str, T_h: int, B: int, action: str | None, train=None):
     return TrainConfig.of(method=method, horizon=T_h, batch_size=B, action=action)
 
 
-def _timed_runs(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None, device, train) -> list:
-    """R runs as the trainer holds them (policy, AdamW, EMA, CPU generator; no LR schedule: a scalar update),
-    each stepping its own synthetic batch; run ``r`` seeded ``r``."""
+def _timed_runs(members: list[tuple], B: int, device) -> list:
+    """One run per ``(task, method, T_h, action, train)`` of ``members``, as the trainer holds it (policy, AdamW,
+    EMA, CPU generator; no LR schedule: a scalar update), each stepping its own synthetic batch of ``B``
+    samples; run ``r`` seeded ``r``. A stack's members may differ in method, task and Sobolev settings."""
     from sdp_cli.training.train import ema_for, optimizer_for
 
-    task = get_task(task_name)
-    cfg = _config(method, T_h, B, action, train)
-    dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
     runs = []
-    for r in range(R):
+    for r, (task_name, method, T_h, action, train) in enumerate(members):
+        task = get_task(task_name)
+        cfg = _config(method, T_h, B, action, train)
+        dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
         torch.manual_seed(r)
         pol = make_policy(cfg, dims).to(device)
         gen = torch.Generator().manual_seed(r)
@@ -160,7 +161,7 @@ def step_seconds(task_name: str, method: str, T_h: int, B: int, action: str | No
     seconds (a compiled config's compile)."""
     from sdp_cli.training.train_step import OneRun
 
-    (run,) = _timed_runs(task_name, method, T_h, B, 1, action, device, train)
+    (run,) = _timed_runs([(task_name, method, T_h, action, train)], B, device)
     if run.cfg.compile:      # as the trainer does (its first step compiles: the warm-up, ``first``)
         run.policy.compile_network()
     return _median_seconds(_step_of(OneRun(run)), max_s, device, first)
@@ -209,38 +210,44 @@ def _median_seconds(step, max_s: float, device="cpu", first: list | None = None)
     return float(np.median(times))
 
 
-def stacked_step_seconds(task_name: str, method: str, T_h: int, B: int, R: int, action: str | None = None,
-                         device="cpu", max_s: float = 5.0, train=None, first: list | None = None) -> float:
-    """Measured seconds of one step of R runs trained as one stack (:class:`sdp_cli.training.train_step.Stack`, the
-    trainer's own step: per-member draws, the stacked network, each member's clipping, AdamW and EMA) on
-    synthetic batches; as :func:`step_seconds` otherwise (the stack compiles itself where the config says so)."""
+def stacked_step_seconds(members: list[tuple], B: int, device="cpu", max_s: float = 5.0,
+                         first: list | None = None) -> float:
+    """Measured seconds of one step of runs trained as one stack (:class:`sdp_cli.training.train_step.Stack`, the
+    trainer's own step: per-member draws and losses, the stacked network, each member's clipping, AdamW and EMA)
+    on synthetic batches of ``B``; ``members``: ``(task, method, T_h, action, train)`` per run (their own
+    methods and Sobolev settings: a mixed SDP/DP stack pays the tangent pass for every member); as
+    :func:`step_seconds` otherwise (the stack compiles itself where the config says so)."""
     from sdp_cli.training.train_step import Stack
 
-    stack = Stack(_timed_runs(task_name, method, T_h, B, R, action, device, train))
+    stack = Stack(_timed_runs(members, B, device))
     return _median_seconds(_step_of(stack), max_s, device, first)
 
 
 def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log=lambda s: None) -> float:
     """Measured seconds of one training step of a job of the runs ``sts`` (one :class:`TrainStage` each): a
-    stack's (:func:`stacked_step_seconds`, batches padded to the largest), or one run's (:func:`step_seconds`);
-    measured once per (:attr:`TrainStage.key`, R, B) in ``cache``."""
+    stack's (:func:`stacked_step_seconds`, batches padded to the largest, each member its own method), or one
+    run's (:func:`step_seconds`); measured once per (members' :attr:`TrainStage.key`, B) in ``cache``."""
     s0 = sts[0]
     R, B = len(sts), max(s.B for s in sts)
-    key = (s0.key, R, B)
+    key = (tuple(s.key for s in sts), B)
     if key not in cache:
         first = [] if s0.train is not None and s0.train.compile else None
         cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s, s0.train, first) if R == 1
-                      else stacked_step_seconds(s0.task, s0.method, s0.T_h, B, R, s0.action, "cpu", max_s, s0.train,
-                                                first))
+                      else stacked_step_seconds([(s.task, s.method, s.T_h, s.action, s.train) for s in sts], B,
+                                                "cpu", max_s, first))
         cache[("compile", *key)] = first[0] if first else 0.0
-        log(f"calibrated a stack of {R} {s0.method} runs on {s0.task} (T_h {s0.T_h}, B={B}): "
+        methods = "/".join(dict.fromkeys(s.method for s in sts))
+        tasks = "/".join(dict.fromkeys(s.task for s in sts))
+        log(f"calibrated a stack of {R} {methods} runs on {tasks} (T_h {s0.T_h}, B={B}): "
             f"{cache[key] * 1e3:.1f} ms a step")
     return cache[key]
 
 
 def _interp(cal: tuple, B: int) -> float:
+    """A step's seconds at batch ``B`` from two measured ones, linear between them; below the smaller batch
+    the smaller's (a small step is per-op overhead: extrapolating the line went negative, rollouts of -0.001 h)."""
     lo, t_lo, hi, t_hi = cal
-    return t_lo if hi == lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
+    return t_lo if hi == lo or B <= lo else t_lo + (t_hi - t_lo) * (B - lo) / (hi - lo)
 
 
 def estimate(name: str, workers: int = 2, budget_s: float = 60.0, log=lambda s: None,
@@ -294,7 +301,7 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
             sts = [next(s for s in train if s.run == run and s.iteration == k) for run in job]
             seconds = job_step_seconds(sts, stacked, log=log)
             longest = max(s.steps for s in sts)   # the stack runs as long as its longest member
-            total += longest * seconds + stacked[("compile", sts[0].key, len(sts), max(s.B for s in sts))]
+            total += longest * seconds + stacked[("compile", tuple(s.key for s in sts), max(s.B for s in sts))]
         for run in job:   # each member bears an equal share
             rows[run]["stack"] = len(job)
             rows[run]["train_cpu_s"] = total / len(job)   # (GPU columns: solo steps)

@@ -23,26 +23,22 @@ running the runs one after another (same seeds, one thread each; tested).
 from __future__ import annotations
 
 import contextlib
-import os
-import sys
-from pathlib import Path
-from typing import Callable
-import multiprocessing as mp
 import fcntl
 import functools
-import time
+import multiprocessing as mp
+import os
 import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Callable
 
 import pandas as pd
 
-from sdp_cli.errors import SdpError
-from sdp_cli.execution.executor import error_status
-from sdp_cli.training.train_stack import train_stack
-from sdp_cli.training.train_stack import stack_key, stackable
-from sdp_cli.execution.executor import check_executor_options
 from sdp_cli.data.artifacts import ensure_dir
-from sdp_cli.execution.executor import error_status, make_executor
-from sdp_cli.training.train_stack import DEFAULT_STACK
+from sdp_cli.errors import SdpError
+from sdp_cli.execution.executor import check_executor_options, error_status, make_executor
+from sdp_cli.training.train_stack import DEFAULT_STACK, stack_key, stackable, train_stack
 
 #: environment defaults of ``sdp pipeline --run`` (so that the DVC stage's command, and with it
 #: its hash, is the same on a laptop and on a cluster)
@@ -145,8 +141,9 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 
 def pack(runs: dict, stack: int) -> list[list[str]]:
     """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): runs of a stackable,
-    compatible training config (:func:`sdp_cli.training.train_stack.stack_key`), of one number of iterations, buffer rule
-    and dataset sizes at every iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
+    compatible training config (:func:`sdp_cli.training.train_stack.stack_key`: one network shape, whatever the
+    method, task variant, seed or T_a), of one number of iterations, buffer rule and dataset sizes at every
+    iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
     split into near-equal stacks, in the experiment's order), trained in lockstep (:func:`run_stack_job`: each
     iteration's collections, then one stacked training); every other run is a job of its own. One size per stack:
     a stack pads its members' batches to its largest, so filling stacks across sizes (until 2026-11-27) spent

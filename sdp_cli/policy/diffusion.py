@@ -122,7 +122,7 @@ class DiffusionUnetPolicy(Policy):
         from sdp_cli.data.chunks import ChunkDataset
 
         p = config.policy
-        action = p.action or task.action
+        action = cls.action_for(config, task)
         return ChunkDataset(task, arrays, p.horizon, p.n_obs_steps, action, with_jacobians=with_jacobians), action
 
     @classmethod
@@ -369,18 +369,19 @@ class StackedDiffusion:
         Bm = max(d["B"] for d in act)
         x, k, cond = (self._pad([d and d[key] for d in draws], Bm) for key in ("x", "k", "cond"))
         ydots = [[] for _ in draws]
-        if not act[0]["projections"]:
+        n_proj = max(len(d["projections"]) for d in act)
+        if not n_proj:
             y = self.net(x, k, cond)
-        else:
-            n_max = max(d["n_s"] for d in act)
-            for j in range(len(act[0]["projections"])):
-                pr = [d and d["projections"][j] for d in draws]
+        else:   # members with fewer projections (DP: none) get zero tangents whose outputs they do not read
+            n_max = max(d["n_s"] for d in act if d["projections"])
+            for j in range(n_proj):
+                pr = [d["projections"][j] if d is not None and j < len(d["projections"]) else None for d in draws]
                 cond_d = self._pad([p and p[1] for p in pr], n_max)
                 tau_d = (self._pad([p and p[2] for p in pr], n_max) if any(p and p[2] is not None for p in pr)
                          else None)
                 y, yd = self.net.forward_jvp(x, tau_d, k, cond, cond_d)
-                for i, d in enumerate(draws):
-                    if d is not None:
+                for i, (d, p) in enumerate(zip(draws, pr)):
+                    if p is not None:
                         ydots[i].append(yd[: d["n_s"], i])
         return [None if d is None else pol.loss_from(d, y[: d["B"], i], ydots[i])
                 for i, (d, pol) in enumerate(zip(draws, self.policies))]

@@ -54,7 +54,11 @@ class MLPPolicy(Policy):
     def make_dataset(cls, config, task, arrays, with_jacobians):
         from sdp_cli.data.chunks import PairDataset
 
-        return PairDataset(task, arrays, with_jacobians=with_jacobians), "u"
+        return PairDataset(task, arrays, with_jacobians=with_jacobians), cls.action_for(config, task)
+
+    @classmethod
+    def action_for(cls, config, task):
+        return "u"   # the MLPs act on torques
 
     @classmethod
     def dims_for(cls, config, task, action):

@@ -9,11 +9,14 @@ and checkpoints; a member's checkpoint is a solo checkpoint (``load_policy``, ``
 killed stack resumes every member.
 
 A run trained in a stack equals the same run trained alone to float32 rounding (``tests/test_train_stack.py``),
-whichever runs share its stack. Compatible runs (:func:`stack_key`): the same task, method, architecture (T_h,
-T_o, K, action, U-Net), batch size, Sobolev mode, path, projections and fraction, and ``compile``; seeds, datasets (n_traj),
-epochs, alpha, learning rates and the other optimisation settings may differ. Members whose batches are smaller
-(a smaller dataset's last batch of an epoch, a finished run) are padded and their padded rows left out of their
-losses; a finished member stays in the stack but takes no step.
+whichever runs share its stack. Compatible runs (:func:`stack_key`) are keyed by what the stacked network's shape
+needs: the family, the network's sizes on the run's task (input, output and tangent dimensions:
+``Policy.dims_for``), the architecture (T_h, T_o, K, action, U-Net), the batch size and ``compile``. Members may
+differ in method (each applies its own loss: SDP and DP in one stack, the DP members' tangent rows zero and
+unused), Sobolev settings (projections, fraction, path; the mode is jvp), task variant, dataset, seed, epochs,
+alpha, learning rates and the other optimisation settings, and (in a loop) T_a. Members whose batches are
+smaller (a smaller dataset's last batch of an epoch, a finished run) are padded and their padded rows left out
+of their losses; a finished member stays in the stack but takes no step.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import Callable
 
 from sdp_cli.errors import SdpError
 from sdp_cli.policy.config import TrainConfig
+from sdp_cli.tasks import get_task
 
 #: the default number of runs per stack (fixed, not chosen by the machine: same seed, same bytes on every machine
 #: with torch's CPU kernels capped: sdp_cli/kernels.py)
@@ -36,11 +40,20 @@ def stackable(cfg: TrainConfig) -> bool:
     return bool(getattr(cfg.policy_class, "stackable", False)) and (not cfg.uses_sobolev or cfg.sobolev.mode == "jvp")
 
 
-def stack_key(task: str, cfg: TrainConfig) -> tuple:
-    """Runs with equal keys are compatible (see the module docstring)."""
-    s = cfg.sobolev
-    return (task, cfg.method, tuple(sorted((k, str(v)) for k, v in cfg.architecture().items())),
-            cfg.data.batch_size, s.mode, s.path, s.n_proj, s.fraction, cfg.compile)
+def network_dims(task, cfg: TrainConfig) -> dict:
+    """The network's sizes ``{n_action, n_obs, n_xi, ndx}`` for runs of ``cfg`` on ``task`` (a name or a task)."""
+    task = get_task(task) if isinstance(task, str) else task
+    family = cfg.policy_class
+    return family.dims_for(cfg, task, family.action_for(cfg, task))
+
+
+def stack_key(task, cfg: TrainConfig, dims: dict | None = None) -> tuple:
+    """Runs of a stackable config with equal keys are compatible (see the module docstring); ``dims``: the
+    network's sizes if known (a started run's), else :func:`network_dims` of ``task``."""
+    dims = network_dims(task, cfg) if dims is None else dims
+    return (cfg.policy_class.__module__, cfg.policy_class.__qualname__, tuple(sorted(dims.items())),
+            tuple(sorted((k, str(v)) for k, v in cfg.architecture().items() if k != "method")),
+            cfg.data.batch_size, cfg.compile)
 
 
 def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = "cpu",
@@ -62,10 +75,10 @@ def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = 
     inits = inits or [None] * len(cfgs)
     runs = [start_run(d, o, c, device, resume=(Path(o) / "checkpoint.pt").exists(), init=i)
             for d, o, c, i in zip(datas, outs, cfgs, inits)]
-    keys = {stack_key(r.base["task"], r.cfg) for r in runs}
+    keys = {stack_key(None, r.cfg, r.base["dims"]) for r in runs}
     if len(keys) > 1:
-        raise SdpError(f"runs {', '.join(map(str, outs))} cannot share a stack: they differ in task, method, "
-                       "architecture, batch size or Sobolev settings")
+        raise SdpError(f"runs {', '.join(map(str, outs))} cannot share a stack: they differ in family, network "
+                       "sizes, architecture, batch size or compile")
     for run in runs:
         log(f"{run.out.name}: {run.describe()}")
     drive(Stack(runs), on_step, regroup=Stack if failed is not None else None, failed=failed)
