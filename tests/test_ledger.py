@@ -56,6 +56,19 @@ def test_committed_ledger_is_regenerated_from_the_committed_reports(tmp_path):
         "results/PAPER.md is stale: run `sdp report --ledger results/PAPER.md`"
 
 
+def test_claim_notes_hold_no_dated_history():
+    """results/claims.yaml says why ours differs; our numbers and their history live in the reports' NOTES.md
+    (the yaml's header says so). Until 2026-12-06 its notes held dated history ("Since the last ledger
+    (2026-11-28): ...") that went stale with every re-run."""
+    import re
+
+    claims, _ = read_claims(RESULTS / "claims.yaml")
+    for c in claims:
+        notes = str(c.get("notes") or "")
+        assert not re.search(r"\b20\d\d-\d\d-\d\d\b", notes), f"claim {c['id']}: a date in its notes"
+        assert "since the last ledger" not in notes.lower(), f"claim {c['id']}: history in its notes"
+
+
 def test_rows_of_another_to_family_are_judged_apart(tmp_path):
     """A report holding runs of both TO families (fig2 with box-FDDP beside fatrop): the ledger's rules judge
     each family apart (``fig2``: fatrop's rows, ``fig2/ddp``: box-FDDP's) and a claim that needs fig2 gives both
