@@ -47,9 +47,9 @@ RESULTS_HISTORY = {
         "TO-alone rows change; `sdp pipeline --run` trains loops of several iterations as stacks in lockstep "
         "(their weights differ from solo training at float32 rounding); fatrop runs of one iteration measure what "
         "they did"),
-    7: ("stacks keyed by network shape: runs of one architecture, batch and network sizes share a stack whatever "
-        "their method (SDP and DP together), task variant, seed or T_a (before: one task and method a stack), so runs "
-        "round otherwise (`small`'s SDP and DP train as one stack of two); the diffusion policies of fig1-fig4 and "
-        "ablation_k train compiled (torch.compile of the U-Net's forward and tangent pass: the loss differs from "
-        "eager by ~1e-7, gradients by ~1.5e-6 relative; `small` stays eager)"),
+    7: ("the diffusion policies of fig1-fig4 and ablation_k train compiled (torch.compile of the U-Net's forward "
+        "and tangent pass: the loss differs from eager by ~1e-7, gradients by ~1.5e-6 relative; `small` stays "
+        "eager and unchanged); stacks keyed by network shape: runs of one method, architecture, batch and network "
+        "sizes share a stack whatever their task variant, seed or T_a (before: one task a stack), so such runs "
+        "round otherwise"),
 }

@@ -129,6 +129,7 @@ def test_estimate_counts_the_papers_epochs_and_writes_nothing(tmp_path, monkeypa
     assert list(df.run) == ["pendulum-sdp-n10-s0", "pendulum-dp-n10-s0"]
     assert list(df.steps) == [2 * 700, 2 * 700] and list(df.samples) == [2 * 700 * 53] * 2
     assert (df.train_cpu_s > 0).all() and (df.to_s > 0).all()
+    assert "stack" not in df   # SDP and DP do not share a stack (a DP member would pay SDP's tangent pass)
     t = totals["cpu"]
     assert t["parallel_s"] == pytest.approx(max(t["sequential_s"] / 2, float(df.total_cpu_s.max())))
     # saved as results/estimates/ keeps it, the reports read it back (hours printed to 3 decimals)

@@ -255,7 +255,7 @@ groups:
 
 def test_loops_of_several_iterations_train_as_one_stack_in_lockstep(root):
     """Loops of as many iterations, buffer rule and dataset sizes stack too (issue "Training 2-3x faster"), keyed
-    by network shape (SDP and DP, other seeds and T_a in one stack): at each iteration every member collects (warm-started by its own previous policy) and merges its own buffer, then
+    by network shape and tangent pass (other seeds and T_a in one stack): at each iteration every member collects (warm-started by its own previous policy) and merges its own buffer, then
     the members train as one stack, each warm-started from its own previous policy. The evaluations equal the
     loops run alone, to float32 rounding (the stack's grouped kernels sum in another order)."""
     from sdp_cli.experiments.experiment import load_experiment
@@ -265,7 +265,9 @@ def test_loops_of_several_iterations_train_as_one_stack_in_lockstep(root):
     (root / "pipelines" / "loops.yaml").write_text(LOOPS)
     runs = loop_configs("loops", load_experiment("loops", root))
     assert len(runs) == 5 and {c.method for c in runs.values()} == {"sdp", "dp"}
-    assert pack(runs, 8) == [list(runs)] and pack(runs, 1) == [[r] for r in runs]
+    # one stack per tangent pass (SDP's, DP's none): seeds and T_a mixed within each
+    sdp, dp = ([r for r in runs if runs[r].method == m] for m in ("sdp", "dp"))
+    assert pack(runs, 8) == [sdp, dp] and pack(runs, 1) == [[r] for r in runs]
     lines = []
     solo = run_group("loops", root / "loops-solo", executor="local", workers=1, device="cpu", root=root,
                      log=lambda s: None, stack=1)

@@ -142,20 +142,23 @@ def run_jobs(configs: list[dict], outs: list[str], device: str = "auto", job: Ca
 def pack(runs: dict, stack: int) -> list[list[str]]:
     """The jobs of an experiment's runs (``{name: LoopConfig}``, in the experiment's order): runs of a stackable,
     compatible training config (:func:`sdp_cli.training.train_stack.stack_key`: one network shape, whatever the
-    method, task variant, seed or T_a), of one number of iterations, buffer rule and dataset sizes at every
-    iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
+    task variant, seed or T_a) with the same tangent pass (the Sobolev term or none), of one number of
+    iterations, buffer rule and dataset sizes at every iteration share stacks of up to ``stack`` runs (a group larger than ``stack`` is
     split into near-equal stacks, in the experiment's order), trained in lockstep (:func:`run_stack_job`: each
     iteration's collections, then one stacked training); every other run is a job of its own. One size per stack:
     a stack pads its members' batches to its largest, so filling stacks across sizes (until 2026-11-27) spent
     1.25-1.35x the time on padding rows (``bench/stack_packing.py``). Stacks first, the larger datasets first
     within a training config (the longest jobs start first), then the runs alone; the same experiment gives the
-    same jobs on every machine."""
+    same jobs on every machine. SDP and DP could share a stack (:func:`~sdp_cli.training.train_stack.train_stack`
+    trains them together), but a DP member then pays SDP's tangent pass: fig3's stacks of 4-6 mixed runs cost
+    1.0-1.3x the CPU of the same runs in one stack per method (``sdp pipeline fig3 --estimate --stack 8``,
+    docs/training.md), so the tangent pass is part of the key."""
     groups: dict = {}
     alone: list[list[str]] = []
     for name, cfg in runs.items():
         if stack > 1 and stackable(cfg.train):
             sizes = tuple(cfg.n_traj_at(k) for k in range(cfg.n_algo))
-            key = (stack_key(cfg.task, cfg.train), cfg.n_algo, cfg.reset_buffer)
+            key = (stack_key(cfg.task, cfg.train), cfg.train.uses_sobolev, cfg.n_algo, cfg.reset_buffer)
             groups.setdefault(key, {}).setdefault(sizes, []).append(name)
         else:
             alone.append([name])
