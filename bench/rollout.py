@@ -1,11 +1,15 @@
 """Rollout speed: Algorithm 2 batched over test instances vs one instance at a time.
 
-    python bench/rollout.py [--policy RUN] [--task double_pendulum] [--n 50] [--t-a 9] [--k-rollout 5]
+    python bench/rollout.py [--policy RUN] [--task double_pendulum] [--n 50] [--t-a 9] [--k-rollout 5] [--traced]
 
 Without --policy, a double-pendulum SDP policy is collected and trained on a small budget first
 (the speed of a rollout does not depend on how well the policy is trained). Prints the total and
 per-instance wall time of the batched rollout, of the same instances rolled out one by one, and
 their ratio, all measured in this run. The paper reports 1.1 s for one rollout on a laptop GPU.
+
+``--traced``: the batched rollout also with the U-Net frozen into TorchScript (``torch.jit.trace``, ``freeze``,
+``optimize_for_inference``), timed round-robin with the eager one in process CPU time, with the largest
+difference of their controls (a frozen graph rounds otherwise; the package does not use it).
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ def main() -> None:
     ap.add_argument("--t-a", type=int, default=9)
     ap.add_argument("--k-rollout", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as `sdp rollout`)")
+    ap.add_argument("--traced", action="store_true", help="also time a frozen TorchScript U-Net (see above)")
+    ap.add_argument("--rounds", type=int, default=5, help="--traced: eager/traced rounds")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -70,6 +76,36 @@ def main() -> None:
     print(f"ratio one-by-one / batched = {t_one / t_batch:.1f}x; first chunk max |U_batched - U_one| = {first:.1e}; "
           f"{agree}/{args.n} whole trajectories agree to 1e-3")
     print(f"paper: 1.1 s for one rollout on a laptop GPU -> batched total / 1.1 s = {t_batch / 1.1:.2f}")
+    if args.traced:
+        _traced(pol, xis, cfg, args)
+
+
+def _traced(pol, xis, cfg, args) -> None:
+    """The batched rollout with the eager U-Net and with a frozen traced one, round-robin, process CPU time."""
+    import statistics
+
+    from sdp_cli.algorithm.rollout import instance_generators, rollout_policy
+
+    eager = pol.unet
+    with torch.no_grad():
+        tau = torch.zeros(args.n, pol.T_h, pol.dims["n_action"])
+        cond = torch.zeros(args.n, pol.dims["n_xi"] + pol.T_o * pol.dims["n_obs"])
+        k = torch.zeros(args.n, dtype=torch.long)
+        traced = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(eager.eval(), (tau, k, cond))))
+    times = {"eager": [], "traced": []}
+    outs = {}
+    with torch.no_grad():
+        for _ in range(args.rounds):
+            for name, net in (("eager", eager), ("traced", traced)):
+                pol.unet = net
+                t0 = time.process_time()
+                outs[name] = rollout_policy(pol, xis, cfg, generators=instance_generators(0, range(args.n)))
+                times[name].append(time.process_time() - t0)
+    pol.unet = eager
+    e, t = statistics.median(times["eager"]), statistics.median(times["traced"])
+    du = float(np.max(np.abs(outs["eager"]["U"][:, :cfg.t_a] - outs["traced"]["U"][:, :cfg.t_a])))
+    print(f"batched, process CPU time (median of {args.rounds}): eager {e:.3f} s, traced+frozen {t:.3f} s, "
+          f"{e / t:.2f}x; first chunk max |U_eager - U_traced| = {du:.1e}")
 
 
 if __name__ == "__main__":
