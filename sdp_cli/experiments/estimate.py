@@ -39,7 +39,7 @@ from sdp_cli.policy.registry import get_method
 from sdp_cli.tasks import get_task
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.registry import make_policy
-from sdp_cli.training.train_stack import DEFAULT_STACK
+from sdp_cli.training.train_stack import DEFAULT_STACK, network_dims
 
 
 def to_reference(task: str, to: str = DEFAULT_TO) -> tuple[float, float]:
@@ -127,9 +127,8 @@ def _timed_runs(members: list[tuple], B: int, device) -> list:
 
     runs = []
     for r, (task_name, method, T_h, action, train) in enumerate(members):
-        task = get_task(task_name)
         cfg = _config(method, T_h, B, action, train)
-        dims = cfg.policy_class.dims_for(cfg, task, action or task.action)
+        dims = network_dims(task_name, cfg)
         torch.manual_seed(r)
         pol = make_policy(cfg, dims).to(device)
         gen = torch.Generator().manual_seed(r)
@@ -228,8 +227,8 @@ def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log
     stack's (:func:`stacked_step_seconds`, batches padded to the largest, each member its own method), or one
     run's (:func:`step_seconds`); measured once per (members' :attr:`TrainStage.key`, B) in ``cache``."""
     s0 = sts[0]
-    R, B = len(sts), max(s.B for s in sts)
-    key = (tuple(s.key for s in sts), B)
+    key = job_key(sts)
+    R, B = len(sts), key[1]
     if key not in cache:
         first = [] if s0.train is not None and s0.train.compile else None
         cache[key] = (step_seconds(s0.task, s0.method, s0.T_h, B, s0.action, "cpu", max_s, s0.train, first) if R == 1
@@ -241,6 +240,11 @@ def job_step_seconds(sts: list[TrainStage], cache: dict, max_s: float = 3.0, log
         log(f"calibrated a stack of {R} {methods} runs on {tasks} (T_h {s0.T_h}, B={B}): "
             f"{cache[key] * 1e3:.1f} ms a step")
     return cache[key]
+
+
+def job_key(sts: list[TrainStage]) -> tuple:
+    """What a job's step time depends on: its members' :attr:`TrainStage.key` and the batch it pads to."""
+    return tuple(s.key for s in sts), max(s.B for s in sts)
 
 
 def _interp(cal: tuple, B: int) -> float:
@@ -301,7 +305,7 @@ def _estimate(runs: dict, train: list[TrainStage], devices: list[str], workers: 
             sts = [next(s for s in train if s.run == run and s.iteration == k) for run in job]
             seconds = job_step_seconds(sts, stacked, log=log)
             longest = max(s.steps for s in sts)   # the stack runs as long as its longest member
-            total += longest * seconds + stacked[("compile", tuple(s.key for s in sts), max(s.B for s in sts))]
+            total += longest * seconds + stacked[("compile", *job_key(sts))]
         for run in job:   # each member bears an equal share
             rows[run]["stack"] = len(job)
             rows[run]["train_cpu_s"] = total / len(job)   # (GPU columns: solo steps)

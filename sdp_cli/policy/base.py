@@ -100,8 +100,8 @@ class Policy(nn.Module):
     @classmethod
     def action_for(cls, config: TrainConfig, task: Task) -> str:
         """The action variable the network predicts on ``task`` (what :meth:`make_dataset` returns beside its
-        dataset): the config's ``action`` if the family has one, else the task's."""
-        return getattr(config.policy, "action", None) or task.action
+        dataset): the config's ``action``, else the task's."""
+        return config.policy.action or task.action
 
     @classmethod
     def dims_for(cls, config: TrainConfig, task: Task, action: str) -> dict:

@@ -47,7 +47,7 @@ def network_dims(task, cfg: TrainConfig) -> dict:
     return family.dims_for(cfg, task, family.action_for(cfg, task))
 
 
-def stack_key(task, cfg: TrainConfig, dims: dict | None = None) -> tuple:
+def stack_key(task, cfg: TrainConfig, *, dims: dict | None = None) -> tuple:
     """Runs of a stackable config with equal keys are compatible (see the module docstring); ``dims``: the
     network's sizes if known (a started run's), else :func:`network_dims` of ``task``."""
     dims = network_dims(task, cfg) if dims is None else dims
@@ -75,7 +75,7 @@ def train_stack(datas: list, outs: list, cfgs: list[TrainConfig], device: str = 
     inits = inits or [None] * len(cfgs)
     runs = [start_run(d, o, c, device, resume=(Path(o) / "checkpoint.pt").exists(), init=i)
             for d, o, c, i in zip(datas, outs, cfgs, inits)]
-    keys = {stack_key(None, r.cfg, r.base["dims"]) for r in runs}
+    keys = {stack_key(r.base["task"], r.cfg, dims=r.base["dims"]) for r in runs}
     if len(keys) > 1:
         raise SdpError(f"runs {', '.join(map(str, outs))} cannot share a stack: they differ in family, network "
                        "sizes, architecture, batch size or compile")
