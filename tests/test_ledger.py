@@ -177,6 +177,38 @@ def test_ratio_rule():
     assert ratio_verdict(float("nan"), 2.0, 0.5, 0.1) == "not reproduced"
 
 
+def test_ratio_kind_says_when_its_interval_straddles_a_verdict_line():
+    from sdp_cli.report.ledger.kinds import Ratio
+
+    r = Ratio(pd.Series([2.5, 3.0, 2.75]), paper=18.6, keep=0.5, partly=0.1, label="x")
+    assert r.lines() == {"reproduced": pytest.approx(9.8), "partly": pytest.approx(2.76)}
+    assert r.verdict == "not reproduced" and r.straddled() == ["partly"]     # 2.75 < 2.76 < 2.75 + 0.28
+    assert r.text() == "x: 2.75x ± 0.283x (3 seeds; its interval straddles the verdict line: partly from 2.76x)"
+    tight = Ratio(pd.Series([3.0, 3.0]), 18.6, 0.5, 0.1)
+    assert tight.verdict == "partly" and tight.straddled() == [] and tight.text() == "3x ± 0x (2 seeds)"
+    assert Ratio(pd.Series([3.0]), 18.6, 0.5, 0.1).straddled() == []        # one seed: no interval
+
+
+def test_table2c_times_the_smallest_t_a_within_its_own_rows():
+    """Claim 7: the speed-up at T_a 1 divides each T_a-1 row's own TO-alone time (never the mean over the sweep's
+    rows, timed under other load), per seed; the degradation is the paper's: worst at T_a >= 12 over worst at
+    T_a <= 9."""
+    from sdp_cli.report.ledger.rules import table2c
+
+    rows = []
+    for seed in (0, 1):
+        for t_a, cost, to in ((1, 30.0, 2.0), (4, 31.0, 8.0), (9, 33.5, 8.0), (12, 85.0, 8.0), (15, 137.0, 8.0)):
+            rows.append(dict(task="double_pendulum", method="sdp", train_seed=seed, iteration=4, t_a=t_a,
+                             run=f"dp-sdp-s{seed}", policy_cost_mean=cost, refined_solve_time_mean=0.1,
+                             ss_refined_solve_time_mean=0.1, to_alone_solve_time_mean=to,
+                             ss_to_alone_solve_time_mean=to, rollout_time_per_instance=1.0))
+    p = {"speedup": [4.1, 0.22], "degradation": [137, 33.5], "best_t_a_max": 9, "degraded_t_a_min": 12,
+         "trade_off_t_a": 9, "keep": 0.5, "partly": 0.1}
+    r = table2c({"fig2": pd.DataFrame(rows)}, p)
+    assert "single shooting: 20x ± 0x (2 seeds)" in r.ours          # pooled over the sweep it would read 68x
+    assert "vs worst 33.5 at T_a <= 9 (4.09x)" in r.ours and r.verdict == "reproduced"
+
+
 def _fig2_rows(dp_success: float, sdp_done: int = 5) -> pd.DataFrame:
     """Synthetic fig2 report rows: SDP and DP, 2 seeds, 5 iterations; seed 1 of SDP stops at ``sdp_done``."""
     rows = []
@@ -328,7 +360,14 @@ def test_quadrotor_rules_per_layout():
     assert "quadrotor-3: success DP 20%, constraint violated DP 30%, final distance DP 0.4 m; SDP not run yet" in r.ours
     assert r.verdict == "partly" and "layouts without both SDP and DP yet: quadrotor-3" in r.detail
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
-    assert "TO alone 16 s, from SDP 7 s, from DP 9 s" in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
+    assert ("SDP's evaluation: TO alone 16 s, from SDP 7 s; DP's evaluation: TO alone 16 s, from DP 9 s "
+            "(TO alone / from SDP: 2.29x ± 0x (2 seeds))") in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
+    # the ratio is the SDP loop's own evaluation's: a slower TO alone timed in DP's evaluation does not count
+    d = fig4(dp_violates=0.3)
+    d.loc[d.method == "dp", "to_alone_solve_time_mean"] = 40.0
+    d.loc[d.method == "sdp", "to_alone_solve_time_mean"] = 9.0
+    r = quadrotor9_times({"fig4": d})
+    assert "TO alone / from SDP: 1.29x ± 0x (2 seeds)" in r.ours and r.verdict == "partly"   # pooled: 3.5x
     assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"
     # a loop partway (3 of its n_algo 5 iterations) is no final iteration, even when no run of the task is further
     d = fig4(dp_violates=0.3).assign(n_algo=lambda x: np.where(x.task == "quadrotor-9", 5, 1))
@@ -356,7 +395,7 @@ def test_quadrotor_rules_per_layout():
         quadrotor_precision({"fig4": part}).ours
     # DP finished, SDP not run: DP's time is shown, but the claim is about SDP
     r = quadrotor9_times({"fig4": d[(d.task != "quadrotor-9") | (d.method == "dp")]})
-    assert r.verdict == "not run" and "from SDP n/a, from DP 9 s" in r.ours
+    assert r.verdict == "not run" and r.ours == "multiple shooting: DP's evaluation: TO alone 16 s, from DP 9 s"
 
 
 def _fig1_rows():

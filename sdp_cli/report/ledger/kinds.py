@@ -1,0 +1,87 @@
+"""The verdict kinds: the few ways a claim's number is judged, each a typed result that says its verdict and
+writes its own prose. A rule (:mod:`sdp_cli.report.ledger.rules`) reads the reports into these; the lines
+they are judged against come from results/claims.yaml (a claim's ``params`` over the shared ``rules``).
+
+- :class:`Ratio`: per-seed ratios, each taken within one evaluation (never across evaluations made under
+  other load), against the paper's ratio: *reproduced* when the mean keeps ``keep`` of the paper's effect
+  (``r - 1 >= keep (r_paper - 1)``), *partly* with ``partly`` of it; a mean whose 95% interval straddles one
+  of those two lines says so.
+- :class:`Within`: a mean cost within a share of a reference (TO alone's cost, another K's).
+- :class:`AtLeast`: a share (a success or failure rate) against the line from which it counts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from sdp_cli.report.ledger.verdicts import fmt, pct_text, ratio_verdict
+from sdp_cli.report.rows import mean_ci
+
+
+@dataclass(frozen=True)
+class Ratio:
+    """A ratio claim. ``per_seed``: ours, one value per training seed (each the mean of that seed's ratios
+    taken within one evaluation); ``paper``: the paper's ratio (> 1); ``label``: what the ratio is, written
+    before the number."""
+    per_seed: pd.Series
+    paper: float
+    keep: float
+    partly: float
+    label: str = ""
+
+    @property
+    def mean(self) -> float:
+        return mean_ci(self.per_seed)[0]
+
+    @property
+    def verdict(self) -> str:
+        return ratio_verdict(self.mean, self.paper, self.keep, self.partly)
+
+    def lines(self) -> dict[str, float]:
+        """The ratios from which ours is *reproduced* and *partly*."""
+        return {"reproduced": 1 + self.keep * (self.paper - 1), "partly": 1 + self.partly * (self.paper - 1)}
+
+    def straddled(self) -> list[str]:
+        """The verdict lines that the 95% interval of the mean over seeds holds (``[]``: none, or no interval)."""
+        m, h, _ = mean_ci(self.per_seed)
+        if not (np.isfinite(m) and np.isfinite(h)):
+            return []
+        return [name for name, line in self.lines().items() if m - h < line < m + h]
+
+    def text(self) -> str:
+        """``"label: 2.75x ± 0.2x (3 seeds; the interval straddles the reproduced line, 2.75x)"``."""
+        value = fmt(self.per_seed, unit="x")
+        s = self.straddled()
+        if s:
+            lines = ", ".join(f"{name} from {self.lines()[name]:.3g}x" for name in s)
+            value = value[:-1] + f"; its interval straddles the verdict line: {lines})"
+        return f"{self.label}: {value}" if self.label else value
+
+
+@dataclass(frozen=True)
+class Within:
+    """``value`` within ``share`` of ``reference`` (a mean cost against TO alone's or another setting's)."""
+    value: float
+    reference: float
+    share: float
+
+    @property
+    def holds(self) -> bool:
+        return bool(self.value <= (1 + self.share) * self.reference)
+
+    def text(self) -> str:
+        return f"{'within' if self.holds else 'not within'} {pct_text(self.share)}"
+
+
+@dataclass(frozen=True)
+class AtLeast:
+    """A share (success, failures, diverged evaluations) against the ``line`` from which it counts."""
+    share: float
+    line: float
+
+    @property
+    def holds(self) -> bool:
+        return bool(np.isfinite(self.share) and self.share >= self.line)
