@@ -85,3 +85,46 @@ class AtLeast:
     @property
     def holds(self) -> bool:
         return bool(np.isfinite(self.share) and self.share >= self.line)
+
+
+@dataclass(frozen=True)
+class FirstN:
+    """The smallest dataset from which a method "reaches" a cost: ``by``, the mean cost over seeds per n_traj
+    (by increasing n_traj); ``to``: the cost to reach (TO alone's); ``within``: the share allowed above it.
+    "Needs n trajectories" means n and more suffice: a small dataset within by chance while larger ones are not
+    does not count (:attr:`first` is the first within, printed beside it where it differs)."""
+    by: pd.Series
+    to: float
+    within: float
+
+    @property
+    def n(self) -> float:
+        """Smallest n_traj within at it and at every larger n_traj run (inf: none)."""
+        ok = (self.by <= (1 + self.within) * self.to)[::-1].cummin()[::-1]
+        return float(ok[ok].index.min()) if ok.any() else float("inf")
+
+    @property
+    def first(self) -> float:
+        """Smallest n_traj within (inf: none)."""
+        ok = self.by[self.by <= (1 + self.within) * self.to]
+        return float(ok.index.min()) if len(ok) else float("inf")
+
+    @property
+    def holds(self) -> bool:
+        return bool(np.isfinite(self.n))
+
+    def text(self) -> str:
+        """``"from n_traj N"`` (with the first n_traj within where it differs) or ``"never (...)"``."""
+        n, first = self.n, self.first
+        if not np.isfinite(n):
+            return "never " + self.never_text()
+        return f"from n_traj {n:g}" + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
+
+    def never_text(self) -> str:
+        """``"(over n_traj 2-4; lowest mean cost 15.3 at n_traj 4)"``: what "never" was judged on (a sweep still
+        running has fewer dataset sizes) and how close it came, naming a first n_traj within that a larger one
+        left again."""
+        by, first = self.by, self.first
+        span = f"{by.index[0]:g}-{by.index[-1]:g}" if len(by) > 1 else f"{by.index[0]:g}"
+        again = f"; first within at n_traj {first:g}, left again at a larger one" if np.isfinite(first) else ""
+        return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g}{again})"

@@ -3,8 +3,10 @@
 Each rule takes ``res`` (``{experiment: all_runs.csv rows, "bench/<name>": bench CSV}``, see
 :func:`sdp_cli.report.ledger.load_results`) and ``p``, the claim's ``params`` from results/claims.yaml
 over its top-level ``rules`` (the paper's numbers, thresholds, tasks and loops live there, never here),
-and returns a :class:`Row`. Verdicts come from the generic rules of :mod:`sdp_cli.report.ledger.verdicts`:
-means over seeds with 95% intervals, ratio claims judged by :func:`ratio_verdict`, "solves" at ``p["solved"]``
+and returns a :class:`Row`. A rule reads the reports; the judging is the verdict kinds' of
+:mod:`sdp_cli.report.ledger.kinds` (a ratio per seed within one evaluation, a cost within a share of another,
+the first dataset size from which a cost is reached, a share at least a line) and the generic combinations of
+:mod:`sdp_cli.report.ledger.verdicts`: means over seeds with 95% intervals, "solves" at ``p["solved"]``
 success, runs that have not reached their task's final iteration left out and named. A claim names its rule
 in the yaml (``rule:``); :data:`RULES` holds them by name.
 """
@@ -14,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from sdp_cli.report.ledger.kinds import Ratio
+from sdp_cli.report.ledger.kinds import AtLeast, Ratio, Within
 from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
 from sdp_cli.report.rows import last_iteration, loop_t_a, method_label, per_seed, unfinished
 from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
@@ -39,7 +41,7 @@ def fig2_only_sdp(res, p) -> Row:
             parts.append(f"{method_label(m)}: " + ("not finished" if (d.method == m).any() else "not run"))
             continue
         sr = per_seed(g, "success_rate")
-        solved[m] = sr.mean() >= p["solved"]
+        solved[m] = AtLeast(sr.mean(), p["solved"]).holds
         parts.append(f"{method_label(m)} {fmt(per_seed(g, 'policy_cost_mean'))}, success {fmt(sr, pct=True)}"
                      + distance_text(g))
     sdp = loop_t_a(d[d.method == "sdp"])
@@ -48,9 +50,9 @@ def fig2_only_sdp(res, p) -> Row:
     if not sdp.empty and (sdp.iteration >= k).any():
         it3 = per_seed(sdp[sdp.iteration == k], "policy_cost_mean")
         ref = per_seed(last[last.method == "sdp"], "refined_cost_mean")
-        near_ok = it3.mean() <= (1 + p["within"]) * ref.mean()
-        near = (f"; SDP after {p['near_iteration']} iterations {fmt(it3)} vs its final refined {fmt(ref)} "
-                f"({'within' if near_ok else 'not within'} {pct_text(p['within'])})")
+        near_k = Within(it3.mean(), ref.mean(), p["within"])
+        near_ok = near_k.holds
+        near = f"; SDP after {p['near_iteration']} iterations {fmt(it3)} vs its final refined {fmt(ref)} ({near_k.text()})"
     else:
         near_ok = False
     others = [m for m in ("dp", "pddp", "pddp_s") if m in solved]
@@ -82,7 +84,7 @@ def fig2_to_alone(res, p) -> Row:
     if "to_alone_success_rate" in sdp and sdp.to_alone_success_rate.notna().any():   # converged is not solved
         ours += (f"; reaching the goal: TO alone {100 * sdp.to_alone_success_rate.mean():.0f}% ({loop_to(p)}), "
                  f"refined from the final SDP {fmt(per_seed(sdp, 'refined_success_rate'), pct=True)}")
-    hits = [f >= p["fail_rate"] for f in (fail_ms, fail_ss) if np.isfinite(f)]
+    hits = [AtLeast(f, p["fail_rate"]).holds for f in (fail_ms, fail_ss) if np.isfinite(f)]
     verdict = "reproduced" if hits and all(hits) else "partly" if any(hits) else "not reproduced"
     return Row(ours, verdict, unfinished(res["fig2"]))
 
@@ -178,7 +180,7 @@ def k_steps(res, p) -> Row:
     k, ref = p["k"], p["reference_k"]
     if k not in means or ref not in means:
         return Row("; ".join(parts), "partly", f"K={k} or K={ref} missing")
-    verdict = "reproduced" if means[k] <= (1 + p["within"]) * means[ref] else "not reproduced"
+    verdict = "reproduced" if Within(means[k], means[ref], p["within"]).holds else "not reproduced"
     return Row("; ".join(parts) + f" (TO alone {to:.3g}; {int(d.epochs.max())} epochs, n_traj 10)", verdict,
                f"rule: K={k} within {pct_text(p['within'])} of K={ref}'s mean cost")
 
@@ -211,7 +213,7 @@ def quadrotor_precision(res, p) -> Row:
                      f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")
         if not missing:
             both.add(task)
-            ok.append(s["sdp"] >= p["solved"] and s["sdp"] > s["dp"]
+            ok.append(AtLeast(s["sdp"], p["solved"]).holds and s["sdp"] > s["dp"]
                       and (task in p["obstacle_free"] or v["dp"] >= v["sdp"]))
     layouts = set(p["layouts"])
     full = layouts <= both
@@ -307,7 +309,7 @@ def ur5_long_actions(res, p) -> Row:
         rate = per_seed(s, "success_rate").mean()
         faster = s.refined_iterations_mean.mean() < s.to_alone_iterations_mean.mean()
         better = s.refined_cost_mean.mean() <= s.to_alone_cost_mean.mean()
-        ok.append(rate >= p["solved"] and faster and better)
+        ok.append(AtLeast(rate, p["solved"]).holds and faster and better)
         parts.append(f"{task} (T_h {h:g}, T_a {t_a:g}) at {it}: SDP {part(s)}" + (f"; DP {part(dp)}" if len(dp) else ""))
     full = set(p["t_a"]) <= set(sdp.t_a.astype(int)) and sdp.task.nunique() >= len(p["tasks"])
     verdict = all_any(ok, complete=full)

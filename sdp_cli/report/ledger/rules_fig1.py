@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from sdp_cli.report.ledger.kinds import AtLeast, FirstN, Within
 from sdp_cli.report.ledger.verdicts import Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 from sdp_cli.report.rows import method_label, per_seed
 
@@ -18,18 +19,19 @@ def sdp_reaches_to(res, p) -> Row:
         parts, ok = [], []
         for task, g in d.groupby("task"):
             to = g.to_alone_cost_mean.mean()
-            ok.append(np.isfinite(_first_n(g, to, p["within"])))
-            parts.append(f"{task}: TO alone {to:.3g}, SDP within {pct_text(p['within'])} " + _n_text(g, to, p["within"]))
+            reach = _reach(g, to, p["within"])
+            ok.append(reach.holds)
+            parts.append(f"{task}: TO alone {to:.3g}, SDP within {pct_text(p['within'])} " + reach.text())
         return Row("; ".join(parts), all_any(ok, complete=len(ok) >= len(p["tasks"])),
                    _fig1_missing(res["fig1"], ("sdp",), p["tasks"]))
     d = res["ablation_k"]
     k = p["ablation_k"]
     g = d[(d.k_rollout == k) & (d.epochs == d.epochs.max())]
     to = g.to_alone_cost_mean.mean()
-    m = g.policy_cost_mean.mean()
+    near = Within(g.policy_cost_mean.mean(), to, p["within"])
     return Row(f"pendulum only (the K ablation's K={k} runs = fig1's pendulum SDP at n_traj 10): SDP "
                f"{fmt(per_seed(g, 'policy_cost_mean'))} vs TO alone {to:.3g}",
-               "partly" if m <= (1 + p["within"]) * to else "not reproduced", "fig1 not run: one task of three, one n_traj")
+               "partly" if near.holds else "not reproduced", "fig1 not run: one task of three, one n_traj")
 
 
 def _fig1_missing(d: pd.DataFrame, methods: tuple[str, ...], tasks: list[str]) -> str:
@@ -53,38 +55,9 @@ def _cost_by_n(g: pd.DataFrame) -> pd.Series:
     return g.groupby("n_traj").policy_cost_mean.mean().sort_index()
 
 
-def _first_n(g: pd.DataFrame, to: float, within: float) -> float:
-    """Smallest n_traj from which the mean policy cost over seeds stays ``within`` of TO alone, at it and at
-    every larger n_traj run (inf: none). "Needs n trajectories" means n and more suffice: a small dataset that
-    is within 10% by chance while larger ones are not does not count (see :func:`_first_within`)."""
-    by = _cost_by_n(g)
-    ok = (by <= (1 + within) * to)[::-1].cummin()[::-1]     # within at n and at every larger n
-    return float(ok[ok].index.min()) if ok.any() else float("inf")
-
-
-def _first_within(g: pd.DataFrame, to: float, within: float) -> float:
-    """Smallest n_traj whose mean policy cost over seeds is ``within`` of TO alone (inf: none)."""
-    by = _cost_by_n(g)
-    ok = by[by <= (1 + within) * to]
-    return float(ok.index.min()) if len(ok) else float("inf")
-
-
-def _n_text(g: pd.DataFrame, to: float, within: float) -> str:
-    """``"from n_traj N"`` / ``"never"``, with the first n_traj within where it differs."""
-    n, first = _first_n(g, to, within), _first_within(g, to, within)
-    if not np.isfinite(n):
-        return "never " + _never_text(g, first)
-    return f"from n_traj {n:g}" + (f" (first within at n_traj {first:g})" if first != n and np.isfinite(first) else "")
-
-
-def _never_text(g: pd.DataFrame, first: float = float("inf")) -> str:
-    """``"(over n_traj 2-4; lowest mean cost 15.3 at n_traj 4)"``: what "never" was judged on (a sweep still
-    running has fewer dataset sizes) and how close it came; ``first``: a smaller n_traj within 10% that a
-    larger one left again."""
-    by = _cost_by_n(g)
-    span = f"{by.index[0]:g}-{by.index[-1]:g}" if len(by) > 1 else f"{by.index[0]:g}"
-    again = f"; first within at n_traj {first:g}, left again at a larger one" if np.isfinite(first) else ""
-    return f"(over n_traj {span}; lowest mean cost {by.min():.3g} at n_traj {by.idxmin():g}{again})"
+def _reach(g: pd.DataFrame, to: float, within: float) -> FirstN:
+    """:class:`FirstN` of the rows ``g`` (one method on one task) against ``to``."""
+    return FirstN(_cost_by_n(g), to, within)
 
 
 def dp_needs_more(res, p) -> Row:
@@ -94,17 +67,18 @@ def dp_needs_more(res, p) -> Row:
     parts, verdicts = [], []
     for task, g in d.groupby("task"):
         to = g.to_alone_cost_mean.mean()
-        n = {m: _first_n(g[g.method == m], to, w) for m in ("sdp", "dp") if (g.method == m).any()}
-        if len(n) < 2:
+        reach = {m: _reach(g[g.method == m], to, w) for m in ("sdp", "dp") if (g.method == m).any()}
+        if len(reach) < 2:
             continue
+        n = {m: r.n for m, r in reach.items()}
         if not np.isfinite(n["sdp"]):
-            parts.append(f"{task}: SDP never within {pct_text(w)} of TO alone {_never_text(g[g.method == 'sdp'])}")
+            parts.append(f"{task}: SDP never within {pct_text(w)} of TO alone {reach['sdp'].never_text()}")
             verdicts.append("not reproduced")
             continue
         # DP never within: the bound is DP's largest dataset, not the task's (other methods may have run larger ones)
         r = n["dp"] / n["sdp"] if np.isfinite(n["dp"]) else g[g.method == "dp"].n_traj.max() / n["sdp"]
         bound = "" if np.isfinite(n["dp"]) else "> "
-        parts.append(f"{task}: SDP {_n_text(g[g.method == 'sdp'], to, w)}, DP {_n_text(g[g.method == 'dp'], to, w)}"
+        parts.append(f"{task}: SDP {reach['sdp'].text()}, DP {reach['dp'].text()}"
                      f" ({bound}{r:.2g}x)")
         verdicts.append(ratio_verdict(r, p["ratio"], p["keep"], p["partly"]) if not bound or r >= p["lower_bound_min"] else "partly")
     if not verdicts:
@@ -127,7 +101,7 @@ def pendulum_torque(res, p) -> Row:
         return Row("", "not run", f"pendulum SDP at n_traj {n3} or DP not run")
     s3 = per_seed(sdp, "success_rate")
     dp_best = dp.groupby("n_traj").success_rate.mean()
-    ok = [s3.mean() >= solved, dp_best.max() < solved]
+    ok = [AtLeast(s3.mean(), solved).holds, not AtLeast(dp_best.max(), solved).holds]
     return Row(f"SDP at n_traj {n3}: success {fmt(s3, pct=True)}, cost {fmt(per_seed(sdp, 'policy_cost_mean'))}"
                f"{distance_text(sdp)} "
                f"(TO alone {pend.to_alone_cost_mean.mean():.3g}); DP's best success over n_traj "
@@ -150,7 +124,7 @@ def mlp_unstable(res, p) -> Row:
         mlp = [share[m] for m in ("pddp", "pddp_s") if m in share]
         diff = [share[m] for m in ("sdp", "dp") if m in share]
         if len(mlp) == 2:   # the rule is about both MLPs: a task with one of them is not judged yet
-            unstable[t] = min(mlp) >= p["diverged_share"] and (not diff or min(mlp) > max(diff))
+            unstable[t] = AtLeast(min(mlp), p["diverged_share"]).holds and (not diff or min(mlp) > max(diff))
         elif mlp:
             one_only.append(t)
     parts = ["evaluations with a diverged rollout: " + "; ".join(per_task)]
