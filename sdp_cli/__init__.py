@@ -53,3 +53,14 @@ RESULTS_HISTORY = {
         "sizes share a stack whatever their task variant, seed or T_a (before: one task a stack), so such runs "
         "round otherwise"),
 }
+
+#: Which rows each version's change touches, where it is not every row: a list of alternatives, each a mapping of
+#: conditions that all hold (``methods``: the method a row is of; ``task_prefix``; ``to``: the TO family;
+#: ``min_n_algo``: loops of at least that many iterations). A row of an older version is read beside a newer
+#: version's rows of its task only where no version since its own touches it (:func:`sdp_cli.report.rows.newest_version`):
+#: the MLPs act on torques and train eager, so versions 5 and 7 leave their runs measuring what they did.
+RESULTS_SCOPE = {
+    5: [{"task_prefix": "quadrotor", "methods": ["sdp", "dp"]}],
+    6: [{"to": ["ddp"]}, {"min_n_algo": 2}],
+    7: [{"methods": ["sdp", "dp"]}],
+}

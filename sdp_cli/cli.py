@@ -271,7 +271,7 @@ def pipeline_cmd(
     experiment: Annotated[str, typer.Argument(help="Experiment name: a file pipelines/<name>.yaml (" + ", ".join(
         sorted(p.stem for p in Path("pipelines").glob("*.yaml"))) + " here).")],
     params: Annotated[Path, typer.Option(help="DVC params file to write the stage lists into.")] = Path("params.yaml"),
-    estimate: Annotated[bool, typer.Option("--estimate", help="Print each run's training steps, samples and estimated hours (training calibrated here in <= 60 s), and the totals; writes nothing.")] = False,
+    estimate: Annotated[bool, typer.Option("--estimate", help="Print each run's training steps, samples and estimated hours (training calibrated here: <= 60 s of timed steps, plus each compiled network's compile, minutes with a cold cache), and the totals; writes nothing.")] = False,
     run: Annotated[bool, typer.Option("--run", help="Run every run of the experiment now (each an `sdp loop` in OUT/<run>/), in parallel on the executor; resumable. This is what the DVC stage `group` runs.")] = False,
     status: Annotated[bool, typer.Option("--status", help="Print where each run stands in OUT (iterations evaluated, done / in progress / not started); reads only.")] = False,
     out: Annotated[Optional[Path], typer.Option(help="--run, --status: folder of the runs (default runs/<experiment>).")] = None,

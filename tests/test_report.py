@@ -713,6 +713,27 @@ def test_results_version_at_this_repository_head():
     assert sorted(sdp_cli.RESULTS_HISTORY) == list(range(1, sdp_cli.RESULTS_VERSION + 1))
 
 
+def test_an_older_row_stays_beside_a_newer_version_that_does_not_touch_it():
+    """Versions 5 and 7 changed the diffusion policies only (the quadrotor's conversion, compiled training): the
+    MLPs' quadrotor-0 rows of version 4 stay beside SDP's of version 7, while DP's of version 4 there do not (the
+    conversion changed what they measure); a version without a scope (4) touches every row; box-FDDP's version 6
+    touches `-ddp` rows and loops of several iterations."""
+    import pandas as pd
+
+    from sdp_cli.report.rows import newest_version
+
+    rows = pd.DataFrame({
+        "run": ["q-sdp", "q-dp", "q-pddp", "q-pddps", "p-sdp", "p-pddp-v1", "p-pddp-ddp", "p-sdp-ddp",
+                "l-dp", "l-sdp", "l-pddp"],
+        "task": ["quadrotor-0"] * 4 + ["pendulum"] * 4 + ["double_pendulum"] * 3,
+        "method": ["sdp", "dp", "pddp", "pddp_s", "sdp", "pddp", "pddp", "sdp", "dp", "sdp", "pddp"],
+        "to": [None] * 6 + ["ddp", "ddp"] + [None] * 3,
+        "n_algo": [1] * 8 + [5, 5, 5],
+        "results_version": [7, 4, 4, 4, 7, 1, 4, 6, 4, 6, 4]})
+    kept = set(newest_version(rows).run)
+    assert kept == {"q-sdp", "q-pddp", "q-pddps", "p-sdp", "p-sdp-ddp", "l-sdp"}, kept
+
+
 def test_a_task_s_rows_of_an_older_results_version_are_not_drawn_beside_a_newer_one(tmp_path):
     """A re-run fills a report run by run while `--keep-missing` keeps the earlier rows: UR5(0, 0) was redefined
     between results versions 1 and 4 (TO alone 0.059 vs 6.28), so a curve or a ledger interval mixing them

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from sdp_cli import RESULTS_SCOPE
 from sdp_cli.families import DEFAULT_TO, TO_NAMES
 
 
@@ -162,12 +163,35 @@ def to_family(df: pd.DataFrame) -> pd.Series:
 
 def newest_version(df: pd.DataFrame) -> pd.DataFrame:
     """The rows the figures and the ledger read: where a task under one TO family has rows of several results
-    versions (``results_version``, :mod:`sdp_cli.report.versions`), only its newest version's. A re-run fills a
-    report run by run while the earlier report's rows are kept (``--keep-missing``); between versions a task may
-    have been redefined (UR5(0, 0)'s TO-alone cost is 0.059 at version 1 and 6.28 at version 4), so one curve or
-    interval mixing them would measure nothing. Rows of an unknown version are kept; ``all_runs.csv`` and the
-    coverage table keep every row."""
+    versions (``results_version``, :mod:`sdp_cli.report.versions`), a row of an older version only where no
+    version since its own touches it (:data:`sdp_cli.RESULTS_SCOPE`; a version without a scope touches every
+    row). A re-run fills a report run by run while the earlier report's rows are kept (``--keep-missing``);
+    between versions a task may have been redefined (UR5(0, 0)'s TO-alone cost is 0.059 at version 1 and 6.28
+    at version 4), so one curve or interval mixing them would measure nothing; the MLPs' quadrotor rows of
+    version 4 stay beside the diffusion policies' re-run at version 7 (versions 5-7 changed nothing they
+    measure). Rows of an unknown version are kept; ``all_runs.csv`` and the coverage table keep every row."""
     return df[newest_version_mask(df)]
+
+
+def touched_by(version: int, rows: pd.DataFrame) -> pd.Series:
+    """Which of ``rows`` results version ``version``'s change touches (:data:`sdp_cli.RESULTS_SCOPE`)."""
+    if version not in RESULTS_SCOPE:
+        return pd.Series(True, index=rows.index)
+    method = rows["method"].map(plain_method) if "method" in rows else pd.Series("", index=rows.index)
+    out = pd.Series(False, index=rows.index)
+    for alt in RESULTS_SCOPE[version]:
+        hit = pd.Series(True, index=rows.index)
+        if "methods" in alt:
+            hit &= method.isin(alt["methods"])
+        if "task_prefix" in alt:
+            hit &= rows["task"].astype(str).str.startswith(alt["task_prefix"])
+        if "to" in alt:
+            hit &= to_family(rows).isin(alt["to"])
+        if "min_n_algo" in alt:
+            n = pd.to_numeric(rows["n_algo"], errors="coerce") if "n_algo" in rows else pd.Series(np.nan, index=rows.index)
+            hit &= ~(n < alt["min_n_algo"])      # unknown: touched
+        out |= hit
+    return out
 
 
 def newest_version_mask(df: pd.DataFrame) -> pd.Series:
@@ -176,7 +200,15 @@ def newest_version_mask(df: pd.DataFrame) -> pd.Series:
         return pd.Series(True, index=df.index)
     v = pd.to_numeric(df["results_version"], errors="coerce")
     newest = v.groupby([df["task"], to_family(df)]).transform("max")
-    return ~(v < newest)
+    keep = ~(v < newest)
+    for old in sorted(set(v[~keep].dropna().astype(int))):
+        rows = df[(v == old) & ~keep]
+        later = range(old + 1, int(newest[rows.index].max()) + 1)
+        touched = pd.Series(False, index=rows.index)
+        for w in later:     # touched by a version after its own, up to its task's newest
+            touched |= touched_by(w, rows) & (w <= newest[rows.index])
+        keep[rows.index] = ~touched
+    return keep
 
 
 def split_family(method) -> tuple[Variant, str | None]:
