@@ -757,3 +757,16 @@ def test_a_task_s_rows_of_an_older_results_version_are_not_drawn_beside_a_newer_
     rows.to_csv(tmp_path / "fig1" / "all_runs.csv", index=False)
     res = load_results(tmp_path)
     assert sorted(res["fig1"].run) == ["p-s0", "q-s0", "u-old", "u-s1", "u-s2"] and list(res["fig1/ddp"].run) == ["p-s0-ddp"]
+
+
+def test_a_ledger_row_names_the_conversion_its_chunked_rows_used():
+    import numpy as np
+    import pandas as pd
+
+    from sdp_cli.report.rows import conversion_text
+
+    rows = pd.DataFrame({"conversion": [np.nan, "tracking"], "k_rollout": [5, 5]})
+    assert conversion_text(rows) == " (inverse dynamics, tracking)"     # before the column: inverse dynamics
+    assert conversion_text(rows.iloc[1:]) == " (tracking)"
+    assert conversion_text(pd.DataFrame({"conversion": [np.nan], "k_rollout": [5]})) == ""   # acts on controls
+    assert conversion_text(pd.DataFrame({"k_rollout": [5]})) == ""

@@ -143,6 +143,20 @@ CONVERSION_TAGS = {"inverse-dynamics": "invdyn", "tracking": "track"}
 CONVERSION_NAMES = {"invdyn": "inverse dynamics", "track": "tracking"}
 
 
+def conversion_text(rows: pd.DataFrame) -> str:
+    """``" (tracking)"``: how the chunked rows ``rows`` (one task) turned predicted chunks into controls, for a
+    ledger row to name beside the task; ``""`` where no row records a conversion (a task whose policies act
+    on the controls). Chunked rows evaluated before the column existed used one-step inverse dynamics."""
+    if "conversion" not in rows or not rows["conversion"].notna().any():
+        return ""
+    conv = rows["conversion"].astype(object)
+    chunked = rows["k_rollout"].notna() if "k_rollout" in rows else conv.notna()
+    conv = conv.where(conv.notna() | ~chunked, "inverse-dynamics").dropna()
+    names = [CONVERSION_NAMES[CONVERSION_TAGS.get(c, c)] if CONVERSION_TAGS.get(c, c) in CONVERSION_NAMES else c
+             for c in sorted(set(conv))]
+    return f" ({', '.join(names)})" if names else ""
+
+
 def split_conversion(method) -> tuple[Variant, str | None]:
     """``(variant without its conversion, conversion tag)``: ``sdp-conv-track`` -> ``("sdp", "track")``."""
     v = as_variant(method)

@@ -18,7 +18,7 @@ import pandas as pd
 
 from sdp_cli.report.ledger.kinds import AtLeast, Ratio, Within
 from sdp_cli.report.ledger.rules_fig1 import dp_needs_more, mlp_unstable, pendulum_torque, sdp_reaches_to
-from sdp_cli.report.rows import last_iteration, loop_t_a, method_label, per_seed, unfinished
+from sdp_cli.report.rows import conversion_text, last_iteration, loop_t_a, method_label, per_seed, unfinished
 from sdp_cli.report.ledger.verdicts import VERDICTS, Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
 
 __all__ = ["RULES", "VERDICTS", "Row", "combine", "fmt", "ratio_verdict"]
@@ -209,7 +209,7 @@ def quadrotor_precision(res, p) -> Row:
         started = set(res["fig4"][res["fig4"].task == task].method)      # a loop partway is named as such
         missing = "".join(f"; {method_label(m)} {'not finished' if m in started else 'not run yet'}"
                           for m in ("sdp", "dp") if m not in by)
-        parts.append(f"{task}: success {vs(s, pct)}, constraint violated {vs(v, pct)}{hit}, final distance "
+        parts.append(f"{task}{conversion_text(g[g.method.isin(['sdp', 'dp'])])}: success {vs(s, pct)}, constraint violated {vs(v, pct)}{hit}, final distance "
                      f"{vs(dist, lambda x: f'{x:.2g} m')}{missing}")
         if not missing:
             both.add(task)

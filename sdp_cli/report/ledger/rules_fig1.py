@@ -8,7 +8,7 @@ import pandas as pd
 
 from sdp_cli.report.ledger.kinds import AtLeast, FirstN, Within
 from sdp_cli.report.ledger.verdicts import Row, all_any, combine, distance_text, fmt, pct_text, ratio_verdict
-from sdp_cli.report.rows import method_label, per_seed
+from sdp_cli.report.rows import conversion_text, method_label, per_seed
 
 def sdp_reaches_to(res, p) -> Row:
     """Claim 1 on what exists: fig1 when run, else the pendulum's fig1 setting of the K ablation (K =
@@ -21,7 +21,7 @@ def sdp_reaches_to(res, p) -> Row:
             to = g.to_alone_cost_mean.mean()
             reach = _reach(g, to, p["within"])
             ok.append(reach.holds)
-            parts.append(f"{task}: TO alone {to:.3g}, SDP within {pct_text(p['within'])} " + reach.text())
+            parts.append(f"{task}{conversion_text(g)}: TO alone {to:.3g}, SDP within {pct_text(p['within'])} " + reach.text())
         return Row("; ".join(parts), all_any(ok, complete=len(ok) >= len(p["tasks"])),
                    _fig1_missing(res["fig1"], ("sdp",), p["tasks"]))
     d = res["ablation_k"]
@@ -72,13 +72,13 @@ def dp_needs_more(res, p) -> Row:
             continue
         n = {m: r.n for m, r in reach.items()}
         if not np.isfinite(n["sdp"]):
-            parts.append(f"{task}: SDP never within {pct_text(w)} of TO alone {reach['sdp'].never_text()}")
+            parts.append(f"{task}{conversion_text(g[g.method.isin(['sdp', 'dp'])])}: SDP never within {pct_text(w)} of TO alone {reach['sdp'].never_text()}")
             verdicts.append("not reproduced")
             continue
         # DP never within: the bound is DP's largest dataset, not the task's (other methods may have run larger ones)
         r = n["dp"] / n["sdp"] if np.isfinite(n["dp"]) else g[g.method == "dp"].n_traj.max() / n["sdp"]
         bound = "" if np.isfinite(n["dp"]) else "> "
-        parts.append(f"{task}: SDP {reach['sdp'].text()}, DP {reach['dp'].text()}"
+        parts.append(f"{task}{conversion_text(g[g.method.isin(['sdp', 'dp'])])}: SDP {reach['sdp'].text()}, DP {reach['dp'].text()}"
                      f" ({bound}{r:.2g}x)")
         verdicts.append(ratio_verdict(r, p["ratio"], p["keep"], p["partly"]) if not bound or r >= p["lower_bound_min"] else "partly")
     if not verdicts:
