@@ -17,7 +17,7 @@ Per run (one task x method x seed x n_traj of the experiment, all its iterations
   third of a training step).
 
 The timed steps are bounded by ``budget_s`` (default 60 s); a compiled configuration also pays its compile once
-per network shape (minutes with a cold inductor cache: 27 min for fig1's 50 quadrotor SDP/DP runs on 2 shared
+per network shape (minutes with a cold inductor cache: 38 min for fig1's 50 quadrotor SDP/DP runs on 2 shared
 cores, 2026-12-06; seconds with a warm one). Totals are given for one process and for
 ``workers`` processes (the sum divided by ``workers``, but never less than the longest run, whose
 iterations depend on each other).
