@@ -2,12 +2,13 @@
 
 __version__ = "0.1.0"
 
-from sdp_cli.kernels import cap_cpu_kernels as _cap_cpu_kernels
+from sdp_cli.kernels import cap_cpu_kernels as _cap_cpu_kernels, use_compile_cache as _use_compile_cache
 from sdp_cli.moved import install as _install_moved
 
 #: torch's and numpy's CPU kernels capped at the AVX2 level before either runs one, unless the user chose
 #: (sdp_cli/kernels.py): the same seed then gives the same numbers on x86 CPUs with and without AVX-512
 _cap_cpu_kernels()
+_use_compile_cache()   # inductor's cache folder, before anything imports torch._dynamo (sdp_cli/kernels.py)
 _install_moved()   # the modules' import paths before the layer folders (sdp_cli/moved.py)
 
 #: the heavy dependencies, imported inside the functions that use them (and so are the modules of sdp that import

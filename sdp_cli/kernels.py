@@ -14,6 +14,7 @@ record the values in effect (``provenance.cpu_kernels``).
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import MutableMapping
 
 #: the variables and the level they are capped at (oneDNN, MKL's conditional numerical reproducibility, ATen,
@@ -54,3 +55,24 @@ def cap_cpu_kernels(environ: MutableMapping[str, str] = os.environ, simd: list[s
 def cpu_kernels(environ: MutableMapping[str, str] = os.environ) -> dict[str, str]:
     """The :data:`PORTABLE` variables set in ``environ`` (by :func:`cap_cpu_kernels` or by the user)."""
     return {k: environ[k] for k in PORTABLE if k in environ}
+
+
+#: the variable naming the folder where inductor keeps what ``torch.compile`` compiled (:mod:`sdp_cli.policy.compiling`)
+COMPILE_CACHE_ENV = "SDP_COMPILE_CACHE"
+
+
+def compile_cache_dir(environ: MutableMapping[str, str] = os.environ) -> Path:
+    """The inductor cache folder of this machine's runs: ``$SDP_COMPILE_CACHE``, else
+    ``$XDG_CACHE_HOME/sdp/inductor``, else ``~/.cache/sdp/inductor``."""
+    if environ.get(COMPILE_CACHE_ENV):
+        return Path(environ[COMPILE_CACHE_ENV])
+    base = Path(environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "sdp" / "inductor"
+
+
+def use_compile_cache(environ: MutableMapping[str, str] = os.environ) -> None:
+    """Point inductor at :func:`compile_cache_dir` unless the user set ``TORCHINDUCTOR_CACHE_DIR``. Called at
+    ``import sdp_cli``: importing ``torch._dynamo`` (diffusers does) fixes inductor's folder to its default,
+    /tmp/torchinductor_<user>, when the variable is unset, so setting it at the first compile came too late
+    (until 2026-12-06 every compiled run cached there)."""
+    environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(compile_cache_dir(environ)))

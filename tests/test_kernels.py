@@ -69,6 +69,20 @@ def test_importing_sdp_cli_caps_a_fresh_process_and_artifacts_record_it(tmp_path
     assert json.loads(out) == [PORTABLE, PORTABLE]
 
 
+def test_compiled_runs_cache_where_the_docs_say_even_after_diffusers_imports_dynamo(tmp_path):
+    """Importing diffusers imports torch._dynamo, which fixes inductor's cache folder to /tmp/torchinductor_<user>
+    when TORCHINDUCTOR_CACHE_DIR is unset: until 2026-12-06 every compiled run cached there, not in the shared
+    folder of sdp_cli.policy.compiling. `import sdp_cli` sets it first; a folder the user set wins."""
+    env = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", "SDP_COMPILE_CACHE")}
+    code = ("import sdp_cli.policy.diffusion\n"
+            "from torch._inductor.runtime.cache_dir_utils import cache_dir\nprint(cache_dir())")
+    run = lambda **e: subprocess.run([sys.executable, "-c", code], env={**env, **e}, capture_output=True,   # noqa: E731
+                                     text=True, check=True).stdout.strip()
+    assert run(SDP_COMPILE_CACHE=str(tmp_path / "c")) == str(tmp_path / "c")
+    assert run(XDG_CACHE_HOME=str(tmp_path / "x")) == str(tmp_path / "x" / "sdp" / "inductor")
+    assert run(SDP_COMPILE_CACHE=str(tmp_path / "c"), TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "t")) == str(tmp_path / "t")
+
+
 def test_numpy_imported_after_sdp_cli_runs_openblas_at_the_avx2_level():
     """A policy's rollout goes through numpy: before the cap, OpenBLAS's AVX-512 kernels moved quadrotor-0's rollout
     costs in the ninth digit and the refined cost by 3% (docs/artifacts.md); the default must be Haswell's."""

@@ -3,25 +3,16 @@ inductor, with one persistent cache per machine that every run of the same shape
 
 A cold compile of the U-Net's forward and tangent pass costs minutes of CPU (``bench/compile_train.py``); inductor
 keeps what it compiled in its cache folder, here ``$SDP_COMPILE_CACHE`` (default ``$XDG_CACHE_HOME/sdp/inductor``,
-else ``~/.cache/sdp/inductor``) unless ``TORCHINDUCTOR_CACHE_DIR`` is set, so the next run of the same shapes, in
+else ``~/.cache/sdp/inductor``) unless ``TORCHINDUCTOR_CACHE_DIR`` is set (set at ``import sdp_cli``: :func:`sdp_cli.kernels.use_compile_cache`), so the next run of the same shapes, in
 any process, loads it in seconds. Inductor's generated kernels follow ``ATEN_CPU_CAPABILITY``, which
 :mod:`sdp_cli.kernels` caps at AVX2, so a compiled run gives the same numbers on other x86 CPUs too.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+from sdp_cli.kernels import COMPILE_CACHE_ENV as CACHE_ENV, compile_cache_dir as cache_dir, use_compile_cache
 
-CACHE_ENV = "SDP_COMPILE_CACHE"
-
-
-def cache_dir() -> Path:
-    """The inductor cache folder of this machine's runs (see the module docstring)."""
-    if os.environ.get(CACHE_ENV):
-        return Path(os.environ[CACHE_ENV])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "sdp" / "inductor"
+__all__ = ["CACHE_ENV", "cache_dir", "compiled"]
 
 
 def compiled(fn):
@@ -29,5 +20,5 @@ def compiled(fn):
     call, again for a new input shape (a smaller last batch of an epoch)."""
     import torch
 
-    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
+    use_compile_cache()     # (already done at ``import sdp_cli``, before torch._dynamo fixes its folder)
     return torch.compile(fn)
