@@ -12,10 +12,11 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from sdp_cli.kernels import PORTABLE, cap_cpu_kernels, cpu_kernels, cpu_simd
+from sdp_cli.kernels import PORTABLE, cap_cpu_kernels, compile_cache_dir, cpu_kernels, cpu_simd
 
 #: trains a tiny SDP policy (seed 0, 1 thread) in a fresh process and prints the SHA-256 of its EMA weights
 TRAIN = """
@@ -79,8 +80,9 @@ def test_compiled_runs_cache_where_the_docs_say_even_after_diffusers_imports_dyn
     run = lambda **e: subprocess.run([sys.executable, "-c", code], env={**env, **e}, capture_output=True,   # noqa: E731
                                      text=True, check=True).stdout.strip()
     assert run(SDP_COMPILE_CACHE=str(tmp_path / "c")) == str(tmp_path / "c")
-    assert run(XDG_CACHE_HOME=str(tmp_path / "x")) == str(tmp_path / "x" / "sdp" / "inductor")
     assert run(SDP_COMPILE_CACHE=str(tmp_path / "c"), TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "t")) == str(tmp_path / "t")
+    assert compile_cache_dir({"XDG_CACHE_HOME": "/x"}) == Path("/x/sdp/inductor")
+    assert compile_cache_dir({"XDG_CACHE_HOME": "/x", "SDP_COMPILE_CACHE": "/c"}) == Path("/c")
 
 
 def test_numpy_imported_after_sdp_cli_runs_openblas_at_the_avx2_level():
