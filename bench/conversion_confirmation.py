@@ -83,7 +83,7 @@ def main() -> None:
             "out from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
             "its own training instances and on the 50 test instances of test seed 0. Success: final distance within "
             "the task's tolerance (5 cm). Cost / TO: on the training instances, the rollout's cost over TO's on the "
-            "same instance. The earlier confirmation (results version 2) is below.", "",
+            "same instance.", "",
             "## Success per method, n_traj, conversion and instance set (mean over runs)", "",
             summary.to_markdown(index=False, floatfmt=".3g"), "",
             "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), ""]
@@ -91,6 +91,9 @@ def main() -> None:
     if a.out.is_file():
         old = a.out.read_text()
         earlier = old.split(MARKER, 1)[1] if MARKER in old else "\n" + old
+    if earlier.strip():
+        text.insert(text.index("## Success per method, n_traj, conversion and instance set (mean over runs)"),
+                    "The earlier confirmations (of earlier runs or results versions) are below the line at the end.\n")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
     print(f"wrote {a.out}")
