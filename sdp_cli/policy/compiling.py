@@ -10,7 +10,7 @@ any process, loads it in seconds. Inductor's generated kernels follow ``ATEN_CPU
 
 from __future__ import annotations
 
-from sdp_cli.kernels import COMPILE_CACHE_ENV as CACHE_ENV, compile_cache_dir as cache_dir, use_compile_cache
+from sdp_cli.kernels import COMPILE_CACHE_ENV as CACHE_ENV, compile_cache_dir as cache_dir
 
 __all__ = ["CACHE_ENV", "cache_dir", "compiled"]
 
@@ -20,5 +20,4 @@ def compiled(fn):
     call, again for a new input shape (a smaller last batch of an epoch)."""
     import torch
 
-    use_compile_cache()     # (already done at ``import sdp_cli``, before torch._dynamo fixes its folder)
-    return torch.compile(fn)
+    return torch.compile(fn)     # (the cache folder is set at ``import sdp_cli``: use_compile_cache)

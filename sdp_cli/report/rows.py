@@ -124,9 +124,7 @@ def method_variants(df: pd.DataFrame) -> pd.DataFrame:
         parts.loc[mixed, "pair"] = pd.Series([(int(h), int(t)) for h, t in zip(df.horizon[mixed], run_t_a[mixed])],
                                              index=df.index[mixed], dtype=object)
     if "conversion" in df:
-        conv = df["conversion"].astype(object)
-        chunked = df["k_rollout"].notna() if "k_rollout" in df else conv.notna()
-        conv = conv.where(conv.notna() | ~chunked, "inverse-dynamics")
+        conv = row_conversions(df)
         mixed = (conv.groupby(df.task).transform("nunique") > 1) & conv.notna()
         parts.loc[mixed, "conversion"] = conv[mixed]
     if "to" in df:
@@ -143,17 +141,21 @@ CONVERSION_TAGS = {"inverse-dynamics": "invdyn", "tracking": "track"}
 CONVERSION_NAMES = {"invdyn": "inverse dynamics", "track": "tracking"}
 
 
+def row_conversions(df: pd.DataFrame) -> pd.Series:
+    """Each row's conversion of predicted chunks: the ``conversion`` column, and ``inverse-dynamics`` for chunked
+    rows (``k_rollout`` set) evaluated before the column existed; NaN for rows that act on the controls."""
+    conv = df["conversion"].astype(object)
+    chunked = df["k_rollout"].notna() if "k_rollout" in df else conv.notna()
+    return conv.where(conv.notna() | ~chunked, "inverse-dynamics")
+
+
 def conversion_text(rows: pd.DataFrame) -> str:
     """``" (tracking)"``: how the chunked rows ``rows`` (one task) turned predicted chunks into controls, for a
     ledger row to name beside the task; ``""`` where no row records a conversion (a task whose policies act
     on the controls). Chunked rows evaluated before the column existed used one-step inverse dynamics."""
     if "conversion" not in rows or not rows["conversion"].notna().any():
         return ""
-    conv = rows["conversion"].astype(object)
-    chunked = rows["k_rollout"].notna() if "k_rollout" in rows else conv.notna()
-    conv = conv.where(conv.notna() | ~chunked, "inverse-dynamics").dropna()
-    names = [CONVERSION_NAMES[CONVERSION_TAGS.get(c, c)] if CONVERSION_TAGS.get(c, c) in CONVERSION_NAMES else c
-             for c in sorted(set(conv))]
+    names = [CONVERSION_NAMES.get(CONVERSION_TAGS.get(c, c), c) for c in sorted(set(row_conversions(rows).dropna()))]
     return f" ({', '.join(names)})" if names else ""
 
 

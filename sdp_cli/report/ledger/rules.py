@@ -107,8 +107,8 @@ def table2c(res, p) -> Row:
     d1 = d[d.t_a == t1]
     to_ms, to_ss = d1.to_alone_solve_time_mean.mean(), d1.ss_to_alone_solve_time_mean.mean()
     paper = p["speedup"][0] / p["speedup"][1]
-    r_ms, r_ss = (Ratio(per_seed(d1.assign(r=d1[f"{pre}to_alone_solve_time_mean"] / d1[f"{pre}refined_solve_time_mean"]), "r"),
-                        paper, p["keep"], p["partly"], name) for pre, name in (("", loop_to(p)), ("ss_", "single shooting")))
+    r_ms, r_ss = (Ratio.of(d1, f"{pre}to_alone_solve_time_mean", f"{pre}refined_solve_time_mean", paper, p["keep"],
+                           p["partly"], name) for pre, name in (("", loop_to(p)), ("ss_", "single shooting")))
     best, worse, mid = p["best_t_a_max"], p["degraded_t_a_min"], p["trade_off_t_a"]
     lo = cost[cost.index <= best].max()
     hi = cost[cost.index >= worse]
@@ -146,8 +146,7 @@ def speedup(res, p) -> Row:
                                   ("single shooting", "ss_to_alone_solve_time_mean", "ss_refined_solve_time_mean")):
                 if ref not in sdp or sdp[ref].isna().all():
                     continue
-                r = Ratio(per_seed(sdp.assign(r=sdp[to] / sdp[ref]), "r"), p["ratio"], p["keep"], p["partly"],
-                          f"{exp} {where} {name}")
+                r = Ratio.of(sdp, to, ref, p["ratio"], p["keep"], p["partly"], f"{exp} {where} {name}")
                 parts.append(r.text())
                 verdicts.append(r.verdict)
     if not parts:
@@ -248,9 +247,8 @@ def quadrotor9_times(res, p) -> Row:
                           f"{g[col].mean():.3g} s")
         part = f"{name}: " + "; ".join(f"{method_label(m)}'s evaluation: {text(g)}" for m, g in t.items())
         if "sdp" in t:    # TO alone and from SDP timed within the SDP loop's own evaluation
-            s = t["sdp"]
-            r = Ratio(per_seed(s.assign(r=s[f"{pre}to_alone_solve_time_mean"] / s[col]), "r"), alone / warm,
-                      p["keep"], p["partly"], "TO alone / from SDP")
+            r = Ratio.of(t["sdp"], f"{pre}to_alone_solve_time_mean", col, alone / warm, p["keep"], p["partly"],
+                         "TO alone / from SDP")
             part += f" ({r.text()})"
             verdicts.append(r.verdict)
         parts.append(part)

@@ -71,14 +71,15 @@ def dp_needs_more(res, p) -> Row:
         if len(reach) < 2:
             continue
         n = {m: r.n for m, r in reach.items()}
+        where = task + conversion_text(g[g.method.isin(["sdp", "dp"])])
         if not np.isfinite(n["sdp"]):
-            parts.append(f"{task}{conversion_text(g[g.method.isin(['sdp', 'dp'])])}: SDP never within {pct_text(w)} of TO alone {reach['sdp'].never_text()}")
+            parts.append(f"{where}: SDP never within {pct_text(w)} of TO alone {reach['sdp'].never_text()}")
             verdicts.append("not reproduced")
             continue
         # DP never within: the bound is DP's largest dataset, not the task's (other methods may have run larger ones)
         r = n["dp"] / n["sdp"] if np.isfinite(n["dp"]) else g[g.method == "dp"].n_traj.max() / n["sdp"]
         bound = "" if np.isfinite(n["dp"]) else "> "
-        parts.append(f"{task}{conversion_text(g[g.method.isin(['sdp', 'dp'])])}: SDP {reach['sdp'].text()}, DP {reach['dp'].text()}"
+        parts.append(f"{where}: SDP {reach['sdp'].text()}, DP {reach['dp'].text()}"
                      f" ({bound}{r:.2g}x)")
         verdicts.append(ratio_verdict(r, p["ratio"], p["keep"], p["partly"]) if not bound or r >= p["lower_bound_min"] else "partly")
     if not verdicts:
