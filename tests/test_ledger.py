@@ -272,6 +272,11 @@ def test_claims_name_their_rule_needs_and_params_and_bad_files_fail_cleanly(tmp_
     claims = [{"id": 99, "claim": "c", "paper": "p", "needs": ["fig9"], "rule": "k_steps", "not_run": "est"}]
     assert ledger_rows({}, claims)[0]["verdict"] == "not run"
     assert ledger_rows({}, claims)[0]["detail"] == "est"
+    # a claim not run gives the runs and hours of its experiment's saved estimate, never hand-written ones
+    est = pd.DataFrame({"run": ["a", "b", "c"], "total_cpu_h": [1.25, 2.0, 0.5]})
+    either = [{**claims[0], "needs": ["fig9|fig8"], "not_run": "not run yet."}]
+    assert ledger_rows({"estimates/fig9": est}, either)[0]["detail"] == (
+        "not run yet; fig9: 3 runs, 3.8 h in one process (`sdp pipeline fig9 --estimate`, results/estimates/fig9.txt)")
     two = [{"id": 2, "claim": "c", "paper": "p", "needs": ["fig1"], "rule": "dp_needs_more"}]
     shared = {"solved": 0.5, "within": 0.1, "keep": 0.5, "partly": 0.1}
     with pytest.raises(SdpError, match="claim 2: the reports lack"):         # a report without the columns

@@ -92,10 +92,24 @@ def _family_results(res: dict[str, pd.DataFrame], fam: str) -> dict[str, pd.Data
     return out
 
 
+def not_run_text(c: dict, res: dict) -> str:
+    """Why claim ``c`` is *not run* (its ``not_run``, hand-written, without numbers of ours) and, per experiment
+    it needs that has no report, the runs and hours of its saved estimate (``estimates/<experiment>`` in ``res``:
+    ``"fig2: 40 runs, 20.5 h in one process (sdp pipeline fig2 --estimate, results/estimates/fig2.txt)"``)."""
+    hours = []
+    for need in c["needs"]:
+        for exp in need.split("|"):
+            est = res.get(f"estimates/{exp}")
+            if exp not in res and est is not None and "total_cpu_h" in est:
+                hours.append(f"{exp}: {len(est)} runs, {est.total_cpu_h.sum():.1f} h in one process "
+                             f"(`sdp pipeline {exp} --estimate`, results/estimates/{exp}.txt)")
+    return "; ".join(x for x in (str(c.get("not_run", "")).strip().rstrip("."), *hours) if x)
+
+
 def _judge(c: dict, res: dict, rules: dict | None, loop_to: str | None = None) -> Row:
     cid = int(c["id"])
     if not _available(c["needs"], res):
-        return Row("", "not run", c.get("not_run", ""))
+        return Row("", "not run", not_run_text(c, res))
     try:
         return RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {}),
                                                   **({"loop_to": loop_to} if loop_to else {})}))
