@@ -81,7 +81,8 @@ def main() -> None:
     st = pstats.Stats(prof)
     total = max(v[3] for v in st.stats.values())
     print(f"\nwhere the time goes (T = {task.T}, N = {max(sizes)}; cumulative seconds, share of the batch):")
-    for name in ("_backward", "box_qp", "_line_search", "_rollout", "_derivatives", "_model"):
+    # the box QP runs inside the compiled backward pass (sdp_cli/trajopt/ddp_kernels.py): its time is _backward's
+    for name in ("_backward", "_line_search", "_rollout", "_derivatives", "_model"):
         cum = sum(v[3] for k, v in st.stats.items() if k[2] == name)
         print(f"  {name:14s} {cum:7.3f} s  {cum / total:5.1%}")
     if a.refill:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdp_cli.trajopt.boxqp import box_qp, free_solve
+from sdp_cli.trajopt.ddp_kernels import backward
 
 #: steps of the line search and the acceptance ratios of a step's actual to its expected change
 ALPHAS = tuple(2.0 ** -np.arange(11))
@@ -50,52 +50,12 @@ class PassesMixin:
     ``task``, ``T``, ``ndx``, ``general`` and ``_rollout``)."""
 
     def _backward(self, d, gaps, U, reg):
-        """Riccati recursion with gaps and the box QP. Returns ``(k (n,T,nu), K (n,T,nu,nx), Vx (n,T+1,nx),
-        free (n,T,nu), stop (n,), ok (n,))``; ``ok`` False where ``Quu + reg I`` is not positive definite."""
-        task, T = self.task, self.T
-        n, nx, nu = len(U), self.ndx, task.nu
-        k, K = np.zeros((n, T, nu)), np.zeros((n, T, nu, nx))
-        Vx_all = np.zeros((n, T + 1, nx))
-        free_all = np.ones((n, T, nu), dtype=bool)
-        stop = np.zeros(n)
-        ok = np.ones(n, dtype=bool)
-        Vx, Vxx = d["lTx"].copy(), d["lTxx"].copy()
-        Vx_all[:, T] = Vx
-        eye = np.eye(nu)
-        for t in reversed(range(T)):
-            A, B = d["A"][:, t], d["B"][:, t]
-            Vxp = Vx + _mv(Vxx, gaps[:, t + 1])
-            At, Bt = A.transpose(0, 2, 1), B.transpose(0, 2, 1)
-            Qx = d["lx"][:, t] + _mv(At, Vxp)
-            Qu = d["lu"][:, t] + _mv(Bt, Vxp)
-            VA, VB = Vxx @ A, Vxx @ B
-            Qxx = d["lxx"][:, t] + At @ VA
-            Quu = d["luu"][:, t] + Bt @ VB
-            Qux = d["lux"][:, t] + Bt @ VA
-            Quu_r = 0.5 * (Quu + Quu.transpose(0, 2, 1)) + reg[:, None, None] * eye
-            try:                                                     # positive definite (all at once)
-                np.linalg.cholesky(Quu_r)
-            except np.linalg.LinAlgError:
-                pd = np.linalg.eigvalsh(Quu_r)[:, 0] > 0
-                ok &= pd
-                Quu_r[~pd] = eye                                     # these instances retry with more reg
-            lo, hi = task.u_lb - U[:, t], task.u_ub - U[:, t]
-            sol = -np.linalg.solve(Quu_r, np.concatenate([Qu[:, :, None], Qux], axis=2))
-            kt, Kt = sol[:, :, 0], sol[:, :, 1:]                     # unconstrained step and gain
-            free = np.ones((n, nu), dtype=bool)
-            out = np.any((kt < lo) | (kt > hi), axis=1)
-            if out.any():
-                kb, fb, _ = box_qp(Quu_r[out], Qu[out], lo[out], hi[out], np.clip(kt[out], lo[out], hi[out]))
-                kt[out], free[out] = kb, fb
-                Kt[out] = -free_solve(Quu_r[out], Qux[out], fb)
-            k[:, t], K[:, t], free_all[:, t] = kt, Kt, free
-            stop += np.sum(np.where(free, Qu, 0.0) ** 2, axis=1)
-            KtT = Kt.transpose(0, 2, 1)
-            Vx = Qx + _mv(KtT, _mv(Quu, kt) + Qu) + _mv(Qux.transpose(0, 2, 1), kt)
-            Vxx = Qxx + KtT @ Quu @ Kt + KtT @ Qux + Qux.transpose(0, 2, 1) @ Kt
-            Vxx = 0.5 * (Vxx + Vxx.transpose(0, 2, 1))
-            Vx_all[:, t] = Vx
-        return k, K, Vx_all, free_all, stop, ok
+        """Riccati recursion with gaps and the box QP, compiled (:func:`sdp_cli.trajopt.ddp_kernels.backward`).
+        Returns ``(k (n,T,nu), K (n,T,nu,nx), Vx (n,T+1,nx), free (n,T,nu), stop (n,), ok (n,))``; ``ok`` False
+        where ``Quu + reg I`` is not positive definite."""
+        c = lambda a: np.ascontiguousarray(a, dtype=float)   # noqa: E731   (one compiled signature)
+        return backward(*(c(d[key]) for key in ("A", "B", "lx", "lu", "lxx", "luu", "lux", "lTx", "lTxx")),
+                        c(gaps), c(U), c(self.task.u_lb), c(self.task.u_ub), c(reg))
 
     def _model(self, d, gaps, k, K):
         """``(d1, d2)``: gradient and curvature of the LQ model along the full step (gaps included)."""
