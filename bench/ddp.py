@@ -1,7 +1,7 @@
 """Box-FDDP (sdp_cli/trajopt/ddp.py) batched: time per instance against the batch size N and the horizon T,
 where the time goes, and the goal (double pendulum <= 20 ms amortized per instance at N = 50 on 1 thread).
 
-    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200] [--refill 16] [--hessians] [--dense-call]
+    python bench/ddp.py [--task double_pendulum] [--sizes 1,10,50] [--horizons 50,100,200] [--refill 16] [--hessians] [--dense-call] [--array-backward]
 
 Instances: collection seed 0, indices 0..N-1, from the naive guess; the compiled functions are built (and
 cached) before timing. Prints per (T, N): converged, mean / max iterations, batch wall time, amortized ms per
@@ -14,7 +14,11 @@ N = max instances from the naive guess under the iterations' Hessian model befor
 changed (relative cost difference > 1e-6), with the cost distribution of each. With ``--dense-call``: the
 N = max instances with the compiled maps called as casadi calls whose outputs go through ``np.asarray`` (how
 maps with structurally sparse outputs were called before they were densified) against the buffer calls
-(``ddp_model.DenseCall``), CPU time, round-robin over ``--repeats``, with a check of identical solutions.
+(``ddp_model.DenseCall``), CPU time, round-robin over ``--repeats``, with a check of identical solutions. With
+``--array-backward``: the N = max instances with the backward pass and the LQ model as numpy array operations over
+the batch (the solver's until 2026-12-07, kept as the oracle in tests/test_ddp_kernels.py) against the compiled ones
+(sdp_cli/trajopt/ddp_kernels.py), CPU time, round-robin over ``--repeats``: the ratio, and how far the solutions
+and iteration counts of the two are apart.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--hessians", action="store_true", help="compare the exact and the PSD Hessian models")
     ap.add_argument("--dense-call", action="store_true", help="compare casadi calls through np.asarray with buffers")
+    ap.add_argument("--array-backward", action="store_true", help="compare the numpy backward pass and LQ model with the compiled ones")
     a = ap.parse_args()
     import torch
 
@@ -91,6 +96,37 @@ def main() -> None:
         hessians(task, args)
     if a.dense_call:
         dense_call(task, args, a.repeats)
+    if a.array_backward:
+        array_backward(task, args, a.repeats)
+
+
+def array_backward(task, args, repeats: int) -> None:
+    """The solve with the backward pass and LQ model of numpy array operations against the compiled ones."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_ddp_kernels import array_backward as numpy_pass, array_model
+
+    solvers = {"numpy": DDPSolver(task), "compiled": DDPSolver(task)}
+    old = solvers["numpy"]
+    old._backward = lambda d, gaps, U, reg: numpy_pass(task, old.T, old.ndx, d, gaps, U, reg)
+    old._model = array_model
+    times = {k: [] for k in solvers}
+    res = {}
+    for s in solvers.values():
+        s.solve_batch(*[v[:1] for v in args], gains=False)     # build the maps, compile the kernels
+    for _ in range(repeats):
+        for k, s in solvers.items():
+            t0 = time.process_time()
+            res[k] = s.solve_batch(*args, gains=False)
+            times[k].append(time.process_time() - t0)
+    dx = max(float(np.abs(p.X - q.X).max()) for p, q in zip(res["numpy"], res["compiled"]))
+    dit = sum(p.iterations != q.iterations for p, q in zip(res["numpy"], res["compiled"]))
+    a, b = (1000 * np.median(times[k]) / len(args[0]) for k in ("numpy", "compiled"))
+    print(f"\nbackward pass and LQ model (N = {len(args[0])}, median of {repeats}, CPU ms per instance): numpy {a:.1f}, "
+          f"compiled {b:.1f}, ratio {a / b:.2f}x; largest state difference of the solutions {dx:.1e}, "
+          f"iteration counts that differ: {dit} of {len(args[0])}")
 
 
 class _AsArrayCall:

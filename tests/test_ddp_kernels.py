@@ -1,4 +1,4 @@
-"""The compiled backward pass of box-FDDP (:mod:`sdp_cli.trajopt.ddp_kernels`) and box QP
+"""The compiled backward pass and LQ model of box-FDDP (:mod:`sdp_cli.trajopt.ddp_kernels`) and box QP
 (:mod:`sdp_cli.trajopt.boxqp`) against their array versions (numpy over the batch, the solver's code until
 2026-12-07, kept here verbatim as the oracle) on random problems with clamped controls, and a ``Quu`` that is
 not positive definite."""
@@ -128,6 +128,22 @@ def array_backward(task, T, nx, d, gaps, U, reg):
     return k, K, Vx_all, free_all, stop, ok
 
 
+def array_model(d, gaps, k, K):
+    """``(d1, d2)``: gradient and curvature of the LQ model along the full step (gaps included)."""
+    n, T = k.shape[:2]
+    dx = gaps[:, 0].copy()
+    d1, d2 = np.zeros(n), np.zeros(n)
+    for t in range(T):
+        du = k[:, t] + _mv(K[:, t], dx)
+        d1 += np.einsum("ni,ni->n", d["lx"][:, t], dx) + np.einsum("ni,ni->n", d["lu"][:, t], du)
+        d2 += (np.einsum("ni,nij,nj->n", dx, d["lxx"][:, t], dx) + 2 * np.einsum("ni,nij,nj->n", du, d["lux"][:, t], dx)
+               + np.einsum("ni,nij,nj->n", du, d["luu"][:, t], du))
+        dx = _mv(d["A"][:, t], dx) + _mv(d["B"][:, t], du) + gaps[:, t + 1]
+    d1 += np.einsum("ni,ni->n", d["lTx"], dx)
+    d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
+    return d1, d2
+
+
 # ---------------------------------------------------------------------------- the tests
 def _problem(rng, n, T, nx, nu, bound, indefinite=()):
     A = np.eye(nx) + 0.1 * rng.standard_normal((n, T, nx, nx))
@@ -176,3 +192,14 @@ def test_compiled_box_qp_is_the_array_version():
     xw, fw, okw = array_box_qp(H, g, lo, hi)
     assert ok.all() and okw.all() and (~free).mean() > 0.2
     assert np.array_equal(free, fw) and np.max(np.abs(x - xw)) <= 1e-10
+
+
+def test_compiled_lq_model_is_the_array_version():
+    """d1 and d2 of the full step along the LQ model, with gaps, as the array version's (on the backward pass's own
+    steps and gains, clamped rows included)."""
+    task, d, gaps, U = _problem(np.random.default_rng(7), 6, 40, 4, 2, 0.5)
+    k, K, *_ = array_backward(task, 40, 4, d, gaps, U, np.full(6, 1e-9))
+    got = PassesMixin._model(None, d, gaps, k, K)
+    want = array_model(d, gaps, k, K)
+    for g, w in zip(got, want):
+        assert np.max(np.abs(g - w)) <= 1e-12 * (1 + np.max(np.abs(w)))

@@ -150,3 +150,52 @@ def backward(A, B, lx, lu, lxx, luu, lux, lTx, lTxx, gaps, U, u_lb, u_ub, reg):
                     Vxx[r, c] = 0.5 * (Qxx[r, c] + Qxx[c, r])
             Vx_all[i, t] = Vx
     return k, K, Vx_all, free_all, stop, ok
+
+
+@njit(cache=True)
+def lq_model(A, B, lx, lu, lxx, luu, lux, lTx, lTxx, gaps, k, K):
+    """``(d1 (n,), d2 (n,))``: gradient and curvature of the LQ model along the full step ``du = k + K dx`` with the
+    gaps (``dx_{t+1} = A dx + B du + gap_{t+1}``, ``dx_0 = gap_0``), as
+    :meth:`sdp_cli.trajopt.ddp_passes.PassesMixin._model`."""
+    n, T, nx, nu = B.shape[0], B.shape[1], B.shape[2], B.shape[3]
+    d1, d2 = np.zeros(n), np.zeros(n)
+    dx, du, nxt = np.empty(nx), np.empty(nu), np.empty(nx)
+    for i in range(n):
+        dx[:] = gaps[i, 0]
+        a1, a2 = 0.0, 0.0
+        for t in range(T):
+            for r in range(nu):
+                s = k[i, t, r]
+                for c in range(nx):
+                    s += K[i, t, r, c] * dx[c]
+                du[r] = s
+            for r in range(nx):
+                a1 += lx[i, t, r] * dx[r]
+                s = 0.0
+                for c in range(nx):
+                    s += lxx[i, t, r, c] * dx[c]
+                a2 += dx[r] * s
+            for r in range(nu):
+                a1 += lu[i, t, r] * du[r]
+                s, q = 0.0, 0.0
+                for c in range(nx):
+                    s += lux[i, t, r, c] * dx[c]
+                for c in range(nu):
+                    q += luu[i, t, r, c] * du[c]
+                a2 += du[r] * (2.0 * s + q)
+            for r in range(nx):
+                s = gaps[i, t + 1, r]
+                for c in range(nx):
+                    s += A[i, t, r, c] * dx[c]
+                for c in range(nu):
+                    s += B[i, t, r, c] * du[c]
+                nxt[r] = s
+            dx[:] = nxt
+        for r in range(nx):
+            a1 += lTx[i, r] * dx[r]
+            s = 0.0
+            for c in range(nx):
+                s += lTxx[i, r, c] * dx[c]
+            a2 += dx[r] * s
+        d1[i], d2[i] = a1, a2
+    return d1, d2

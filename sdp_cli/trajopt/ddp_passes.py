@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sdp_cli.trajopt.ddp_kernels import backward
+from sdp_cli.trajopt.ddp_kernels import backward, lq_model
 
 #: steps of the line search and the acceptance ratios of a step's actual to its expected change
 ALPHAS = tuple(2.0 ** -np.arange(11))
@@ -45,6 +45,16 @@ def _psd_model(d: dict) -> None:
 
 
 
+def _c(a) -> np.ndarray:
+    """C-contiguous float64 (the compiled kernels' one signature)."""
+    return np.ascontiguousarray(a, dtype=float)
+
+
+def _lq(d: dict) -> list[np.ndarray]:
+    """The LQ model's arrays of the derivatives ``d`` in the kernels' order."""
+    return [_c(d[key]) for key in ("A", "B", "lx", "lu", "lxx", "luu", "lux", "lTx", "lTxx")]
+
+
 class PassesMixin:
     """The backward pass, the LQ model and the line search of :class:`~sdp_cli.trajopt.ddp.DDPSolver` (uses its
     ``task``, ``T``, ``ndx``, ``general`` and ``_rollout``)."""
@@ -53,24 +63,12 @@ class PassesMixin:
         """Riccati recursion with gaps and the box QP, compiled (:func:`sdp_cli.trajopt.ddp_kernels.backward`).
         Returns ``(k (n,T,nu), K (n,T,nu,nx), Vx (n,T+1,nx), free (n,T,nu), stop (n,), ok (n,))``; ``ok`` False
         where ``Quu + reg I`` is not positive definite."""
-        c = lambda a: np.ascontiguousarray(a, dtype=float)   # noqa: E731   (one compiled signature)
-        return backward(*(c(d[key]) for key in ("A", "B", "lx", "lu", "lxx", "luu", "lux", "lTx", "lTxx")),
-                        c(gaps), c(U), c(self.task.u_lb), c(self.task.u_ub), c(reg))
+        return backward(*_lq(d), _c(gaps), _c(U), _c(self.task.u_lb), _c(self.task.u_ub), _c(reg))
 
     def _model(self, d, gaps, k, K):
-        """``(d1, d2)``: gradient and curvature of the LQ model along the full step (gaps included)."""
-        n, T = k.shape[:2]
-        dx = gaps[:, 0].copy()
-        d1, d2 = np.zeros(n), np.zeros(n)
-        for t in range(T):
-            du = k[:, t] + _mv(K[:, t], dx)
-            d1 += np.einsum("ni,ni->n", d["lx"][:, t], dx) + np.einsum("ni,ni->n", d["lu"][:, t], du)
-            d2 += (np.einsum("ni,nij,nj->n", dx, d["lxx"][:, t], dx) + 2 * np.einsum("ni,nij,nj->n", du, d["lux"][:, t], dx)
-                   + np.einsum("ni,nij,nj->n", du, d["luu"][:, t], du))
-            dx = _mv(d["A"][:, t], dx) + _mv(d["B"][:, t], du) + gaps[:, t + 1]
-        d1 += np.einsum("ni,ni->n", d["lTx"], dx)
-        d2 += np.einsum("ni,nij,nj->n", dx, d["lTxx"], dx)
-        return d1, d2
+        """``(d1, d2)``: gradient and curvature of the LQ model along the full step (gaps included), compiled
+        (:func:`sdp_cli.trajopt.ddp_kernels.lq_model`)."""
+        return lq_model(*_lq(d), _c(gaps), _c(k), _c(K))
 
     def _line_search(self, X, U, rows, xi, d, gaps, k, K, s, al_state):
         """Try the steps of ``ALPHAS`` on the instances ``rows`` (positions ``s`` in the active arrays); write the
