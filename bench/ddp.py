@@ -123,10 +123,11 @@ def array_backward(task, args, repeats: int) -> None:
             times[k].append(time.process_time() - t0)
     dx = max(float(np.abs(p.X - q.X).max()) for p, q in zip(res["numpy"], res["compiled"]))
     dit = sum(p.iterations != q.iterations for p, q in zip(res["numpy"], res["compiled"]))
+    dc = max(abs(p.cost - q.cost) / abs(p.cost) for p, q in zip(res["numpy"], res["compiled"]))
     a, b = (1000 * np.median(times[k]) / len(args[0]) for k in ("numpy", "compiled"))
     print(f"\nbackward pass and LQ model (N = {len(args[0])}, median of {repeats}, CPU ms per instance): numpy {a:.1f}, "
-          f"compiled {b:.1f}, ratio {a / b:.2f}x; largest state difference of the solutions {dx:.1e}, "
-          f"iteration counts that differ: {dit} of {len(args[0])}")
+          f"compiled {b:.1f}, ratio {a / b:.2f}x; largest state difference of the solutions {dx:.1e}, relative cost "
+          f"difference {dc:.1e}, iteration counts that differ: {dit} of {len(args[0])}")
 
 
 class _AsArrayCall:
