@@ -30,29 +30,19 @@ def _mm(A, B, out):
 
 
 @njit(cache=True)
-def _atb(C, A, B, out):
-    """``out = C + A' B`` (``out`` may be ``C``)."""
-    for r in range(A.shape[1]):
+def _ab(C, A, B, out):
+    """``out = C + A B`` (``out`` may be ``C``; ``A`` may be a transposed view: ``C + A' B``)."""
+    for r in range(A.shape[0]):
         for c in range(B.shape[1]):
             s = C[r, c]
-            for p in range(A.shape[0]):
-                s += A[p, r] * B[p, c]
+            for p in range(A.shape[1]):
+                s += A[r, p] * B[p, c]
             out[r, c] = s
 
 
 @njit(cache=True)
-def _atv(c, A, v, out):
-    """``out = c + A' v`` (``out`` may be ``c``)."""
-    for r in range(A.shape[1]):
-        s = c[r]
-        for p in range(A.shape[0]):
-            s += A[p, r] * v[p]
-        out[r] = s
-
-
-@njit(cache=True)
 def _av(c, A, v, out):
-    """``out = c + A v``."""
+    """``out = c + A v`` (``out`` may be ``c``; ``A`` may be a transposed view: ``c + A' v``)."""
     for r in range(A.shape[0]):
         s = c[r]
         for p in range(A.shape[1]):
@@ -108,13 +98,13 @@ def backward(A, B, lx, lu, lxx, luu, lux, lTx, lTxx, gaps, U, u_lb, u_ub, reg):
         for t in range(T - 1, -1, -1):
             a, b = A[i, t], B[i, t]
             _av(Vx, Vxx, gaps[i, t + 1], Vxp)               # V'_x = V_x + V_xx fbar
-            _atv(lx[i, t], a, Vxp, Qx)
-            _atv(lu[i, t], b, Vxp, Qu)
+            _av(lx[i, t], a.T, Vxp, Qx)
+            _av(lu[i, t], b.T, Vxp, Qu)
             _mm(Vxx, a, VA)
             _mm(Vxx, b, VB)
-            _atb(lxx[i, t], a, VA, Qxx)
-            _atb(luu[i, t], b, VB, Quu)
-            _atb(lux[i, t], b, VA, Qux)
+            _ab(lxx[i, t], a.T, VA, Qxx)
+            _ab(luu[i, t], b.T, VB, Quu)
+            _ab(lux[i, t], b.T, VA, Qux)
             for r in range(nu):
                 for c in range(nu):
                     Quu_r[r, c] = 0.5 * (Quu[r, c] + Quu[c, r]) + (reg[i] if r == c else 0.0)
@@ -145,12 +135,12 @@ def backward(A, B, lx, lu, lxx, luu, lux, lTx, lTxx, gaps, U, u_lb, u_ub, reg):
                     stop[i] += Qu[r] * Qu[r]
             # V_x = Q_x + K'(Quu k + Qu) + Qux' k;  V_xx = Qxx + K'(Quu K + Qux) + Qux' K, symmetrized
             _av(Qu, Quu, kt, w)
-            _atv(Qx, Kt, w, Vx)
-            _atv(Vx, Qux, kt, Vx)
+            _av(Qx, Kt.T, w, Vx)
+            _av(Vx, Qux.T, kt, Vx)
             _mm(Quu, Kt, QK)
             QK += Qux
-            _atb(Qxx, Kt, QK, Qxx)
-            _atb(Qxx, Qux, Kt, Qxx)
+            _ab(Qxx, Kt.T, QK, Qxx)
+            _ab(Qxx, Qux.T, Kt, Qxx)
             for r in range(nx):
                 for c in range(nx):
                     Vxx[r, c] = 0.5 * (Qxx[r, c] + Qxx[c, r])
