@@ -10,7 +10,8 @@ instance and per instance-iteration; then a profile of the N = max, T = task def
 starts the next instance as one finishes (``solve_batch(width=W)``), in process CPU time, round-robin over
 ``--repeats``, with a check that every instance's solution is the same both ways. With ``--hessians``: the
 N = max instances from the naive guess under the iterations' Hessian model before issue "Our box-FDDP within 2x"
-(``hessian="exact"``) and the default (``"psd"``): converged, iterations, CPU time, and how often the optimum
+(``hessian="exact"``), the PSD-projected one (``"psd"``) and, on a task that declares residuals (UR5), the
+Gauss-Newton one (``"gn"``, the default there): converged, iterations, CPU time, and how often the optimum
 changed (relative cost difference > 1e-6), with the cost distribution of each. With ``--dense-call``: the
 N = max instances with the compiled maps called as casadi calls whose outputs go through ``np.asarray`` (how
 maps with structurally sparse outputs were called before they were densified) against the buffer calls
@@ -35,6 +36,7 @@ import numpy as np
 from sdp_cli.algorithm.solve_jobs import sample_xi
 from sdp_cli.tasks import get_task
 from sdp_cli.trajopt.ddp import DDPSolver
+from sdp_cli.trajopt.ddp_model import gauss_newton
 
 
 def batch(task, n):
@@ -51,7 +53,7 @@ def main() -> None:
     ap.add_argument("--horizons", default="50,100,200")
     ap.add_argument("--refill", type=int, default=0, help="compare batches of this width with a refilled batch")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--hessians", action="store_true", help="compare the exact and the PSD Hessian models")
+    ap.add_argument("--hessians", action="store_true", help="compare the Hessian models (exact, PSD-projected, Gauss-Newton where the task has residuals)")
     ap.add_argument("--dense-call", action="store_true", help="compare casadi calls through np.asarray with buffers")
     ap.add_argument("--array-backward", action="store_true", help="compare the numpy backward pass and LQ model with the compiled ones")
     a = ap.parse_args()
@@ -162,28 +164,32 @@ def dense_call(task, args, repeats: int) -> None:
 
 
 def hessians(task, args) -> None:
-    """The exact against the PSD Hessian model from the naive guess: which optimum each reaches, at what cost."""
+    """The exact Hessian model against the PSD-projected one and, where the task declares residuals, the
+    Gauss-Newton one, from the naive guess: which optimum each reaches, at what cost."""
     res, cpu = {}, {}
-    for model in ("exact", "psd"):
+    models = ("exact", "psd", "gn") if gauss_newton(task) else ("exact", "psd")
+    for model in models:
         solver = DDPSolver(task, hessian=model)
         solver.solve_batch(*[v[:1] for v in args], gains=False)          # build the maps
         t0 = time.process_time()
         res[model] = solver.solve_batch(*args, gains=False)
         cpu[model] = time.process_time() - t0
-    ex, ps = (np.array([r.cost for r in res[m]]) for m in ("exact", "psd"))
-    both = np.array([a.converged and b.converged for a, b in zip(res["exact"], res["psd"])])
-    rel = (ps - ex) / np.abs(ex)
-    moved = both & (np.abs(rel) > 1e-6)
-    print(f"\nHessian models from the naive guess ({task.name}, N = {len(ex)}):")
+    cost = {m: np.array([r.cost for r in res[m]]) for m in models}
+    print(f"\nHessian models from the naive guess ({task.name}, N = {len(cost['exact'])}):")
     print("| model | converged | iterations median (min-max) | CPU s (batch) | cost mean | cost median |")
     print("|---|---|---|---|---|---|")
-    for m, c in (("exact", ex), ("psd", ps)):
+    for m in models:
         it = np.array([r.iterations for r in res[m]])
         print(f"| {m} | {np.mean([r.converged for r in res[m]]):.0%} | {np.median(it):g} ({it.min()}-{it.max()}) | "
-              f"{cpu[m]:.2f} | {c.mean():.4g} | {np.median(c):.4g} |")
-    print(f"both converged on {both.sum()} of {len(ex)}; the optimum changed (|relative cost difference| > 1e-6) on "
-          f"{moved.sum()}: {(moved & (rel < 0)).sum()} lower and {(moved & (rel > 0)).sum()} higher under psd; "
-          f"the others agree to {np.abs(rel[both & ~moved]).max(initial=0):.1e}")
+              f"{cpu[m]:.2f} | {cost[m].mean():.4g} | {np.median(cost[m]):.4g} |")
+    ex = cost["exact"]
+    for m in models[1:]:
+        both = np.array([a.converged and b.converged for a, b in zip(res["exact"], res[m])])
+        rel = (cost[m] - ex) / np.abs(ex)
+        moved = both & (np.abs(rel) > 1e-6)
+        print(f"{m} against exact: both converged on {both.sum()} of {len(ex)}; the optimum changed (|relative cost "
+              f"difference| > 1e-6) on {moved.sum()}: {(moved & (rel < 0)).sum()} lower and {(moved & (rel > 0)).sum()} "
+              f"higher under {m}; the others agree to {np.abs(rel[both & ~moved]).max(initial=0):.1e}")
 
 
 def refill(solver, args, w: int, repeats: int) -> None:

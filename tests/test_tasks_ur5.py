@@ -74,6 +74,8 @@ def test_random_targets_are_reachable_by_ik():
 def test_casadi_step_and_costs_match_pinocchio():
     task = get_task("ur5-rinit-rtgt")
     rng = np.random.default_rng(1)
+    xs, us, xis = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
+    residuals = ca.Function("r", [xs, us, xis], [task._running_residual(xs, us, xis), task._terminal_residual(xs, xis)])
     for _ in range(5):
         xi = task.sample_xi(rng)
         x = np.concatenate([rng.uniform(-np.pi, np.pi, 6), rng.normal(size=6)])
@@ -93,6 +95,11 @@ def test_casadi_step_and_costs_match_pinocchio():
                                    0.5 * (100 * e @ e + 100 * tw @ tw + 1e-4 * x @ x), rtol=1e-10)
         np.testing.assert_allclose(np.asarray(ca.evalf(task.ee_position(ca.DM(x[:6])))).ravel(),
                                    task.ee_position_np(x[:6]), atol=1e-12)
+        # the residuals box-FDDP's Gauss-Newton model uses are those of the same costs: l = 1/2 |r|^2
+        r = np.asarray(residuals(x, u, xi)[0]).ravel()
+        r_T = np.asarray(residuals(x, u, xi)[1]).ravel()
+        np.testing.assert_allclose(0.5 * r @ r, float(task.f_running_cost(x, u, xi)), rtol=1e-12)
+        np.testing.assert_allclose(0.5 * r_T @ r_T, float(task.f_terminal_cost(x, xi)), rtol=1e-12)
 
 
 def test_observation_map_and_jacobian_by_finite_differences():

@@ -154,6 +154,18 @@ class Task(PolicyConventions, ABC):
     def _terminal_cost(self, x, xi):
         """casadi expression of ``l_T(x; xi)``."""
 
+    def _running_residual(self, x, u, xi):
+        """Optional: a casadi vector ``r`` with ``l_t = 1/2 |r|^2`` (weights folded in), as crocoddyl's residual
+        costs; box-FDDP then iterates with the Gauss-Newton model ``r_z' r_z`` of the cost Hessian
+        (:mod:`sdp_cli.trajopt.ddp`). ``None`` (the default): the cost is not declared as a sum of squares, and
+        box-FDDP projects its exact Hessian onto the PSD cone. ``tests/test_tasks.py`` checks ``1/2 |r|^2`` against
+        :meth:`_running_cost`."""
+        return None
+
+    def _terminal_residual(self, x, xi):
+        """Optional: ``r`` with ``l_T = 1/2 |r|^2`` (see :meth:`_running_residual`); ``None``: not declared."""
+        return None
+
     def _state_constraints(self, x, xi):
         """casadi expression ``h(x; xi)`` (n_h,), feasible when ``h <= 0``."""
         return ca.SX.zeros(0, 1)

@@ -207,6 +207,19 @@ class Ur5Task(StartGoalTask):
         e = self.ee_position(q) - xi[self.nx:self.nx + 3]
         return 0.5 * (W_EE_T * ca.sumsqr(e) + W_TWIST_T * ca.sumsqr(self.tool_twist(q, v)) + W_X_T * ca.sumsqr(x))
 
+    def _running_residual(self, x, u, xi):
+        """The running cost's residual, ``l_t = 1/2 |r|^2``: the same four weighted terms as :meth:`_running_cost`."""
+        q, v = x[: self.nq], x[self.nq:]
+        e = self.ee_position(q) - xi[self.nx:self.nx + 3]
+        u_grav = self.cmodel.rnea(q, ca.DM.zeros(self.nv), ca.DM.zeros(self.nv))
+        return ca.vertcat(*(np.sqrt(self.dt * w) * r for w, r in ((W_Q, q), (W_V, v), (W_U, u - u_grav), (W_EE, e))))
+
+    def _terminal_residual(self, x, xi):
+        """The terminal cost's residual, ``l_T = 1/2 |r|^2``."""
+        q, v = x[: self.nq], x[self.nq:]
+        e = self.ee_position(q) - xi[self.nx:self.nx + 3]
+        return ca.vertcat(*(np.sqrt(w) * r for w, r in ((W_EE_T, e), (W_TWIST_T, self.tool_twist(q, v)), (W_X_T, x))))
+
     # ------------------------------------------------------------ policy maps
     @property
     def n_obs(self) -> int:

@@ -12,11 +12,14 @@ Algorithm (our implementation, read from the papers; no crocoddyl or aligator co
   differential dynamic programming", ICRA 2014 (:mod:`sdp_cli.trajopt.boxqp`): ``k_t`` solves
   ``min 1/2 du' Quu du + Qu' du`` on ``u_lb - u_t <= du <= u_ub - u_t``, ``K_t`` has zero rows on the clamped
   controls; the rollout clips to the bounds.
-- **Hessians**: Gauss-Newton in the dynamics (no second-order dynamics term), as FDDP, and the cost Hessians
-  projected onto the positive semi-definite cone (``hessian="psd"``, the default; :func:`~sdp_cli.trajopt.ddp_passes._psd_model`): crocoddyl's
-  residual costs give it a Gauss-Newton model, our tasks' costs are plain casadi expressions, whose exact
-  Hessians are indefinite on UR5 (most iterations were failed factorizations: 95-141 iterations from the naive
-  guess, 14-48 with the projection, the same optima). ``hessian="exact"`` (before 2026-12-06) for comparisons.
+- **Hessians**: Gauss-Newton in the dynamics (no second-order dynamics term), as FDDP. The cost Hessians: where
+  the task declares its costs as residuals ``l = 1/2 |r|^2`` (:meth:`~sdp_cli.tasks.base.Task._running_residual`:
+  UR5), the Gauss-Newton model ``r_z' r_z`` (``hessian="gn"``), as crocoddyl's residual costs give it; otherwise
+  the exact Hessians projected onto the positive semi-definite cone (``hessian="psd"``;
+  :func:`~sdp_cli.trajopt.ddp_passes._psd_model`). ``"auto"`` (the default) picks the first that applies. The
+  exact Hessians of UR5's end-effector costs are indefinite (most iterations were failed factorizations: 95-141
+  iterations from the naive guess; 14-48 with the projection; the same optima); ``hessian="exact"`` (before
+  2026-12-06) for comparisons.
   The feedback gains stored with a solution are recomputed at the converged point with the exact Hessian of
   the Lagrangian (co-states ``lambda_{t+1} = V_x(t+1)``) by :func:`sdp_cli.trajopt.gains.riccati_gains`, the
   same code that gives fatrop's solutions their gains, so a DDP dataset trains SDP on true sensitivities. They
@@ -68,7 +71,7 @@ from sdp_cli.trajopt.ddp_gains import GainsMixin
 from sdp_cli.trajopt.ddp_passes import ACCEPT, ACCEPT_NEG, ALPHAS, PassesMixin, _mv, _psd_model  # noqa: F401
 from sdp_cli.trajopt.ddp_model import DenseCall
 from sdp_cli.trajopt.ddp_model import cols as _cols
-from sdp_cli.trajopt.ddp_model import ddp_functions, general, left_inverse, to_tangent
+from sdp_cli.trajopt.ddp_model import ddp_functions, gauss_newton, general, left_inverse, to_tangent
 from sdp_cli.trajopt.jit import compile_functions, jit_enabled_by_default
 from sdp_cli.trajopt.solver import DEFAULT_MAX_ITER, SolveResult
 
@@ -84,9 +87,10 @@ STEP_INC, STEP_DEC = 0.01, 0.5
 #: crocoddyl's ``stoppingCriteria()``) or "crocoddyl" (``|d1 + d2/2|`` of the full step, what crocoddyl 3.x's solve
 #: stops on): bench/crocoddyl_compare.py compares iterations under one rule with ``--ddp-stop crocoddyl``
 STOP_RULES = ("ours", "crocoddyl")
-#: the Hessian model of the iterations: "psd" (the cost Hessians projected onto the PSD cone, ddp_passes._psd_model)
-#: or "exact"; the stored gains use the exact Hessian of the Lagrangian either way
-HESSIANS = ("psd", "exact")
+#: the Hessian model of the iterations: "gn" (Gauss-Newton over the task's residuals, ddp_model.gauss_newton),
+#: "psd" (the cost Hessians projected onto the PSD cone, ddp_passes._psd_model) or "exact"; "auto": "gn" where the
+#: task declares residuals, else "psd". The stored gains use the exact Hessian of the Lagrangian whatever the model
+HESSIANS = ("auto", "gn", "psd", "exact")
 
 
 class DDPSolver(PassesMixin, GainsMixin):
@@ -96,17 +100,21 @@ class DDPSolver(PassesMixin, GainsMixin):
     solver_name = "ddp"
 
     def __init__(self, task, horizon: int | None = None, max_iter: int = DEFAULT_MAX_ITER, tol: float = STOP_TOL,
-                 jit: bool | None = None, hessian: str = "psd", stop_rule: str = "ours"):
+                 jit: bool | None = None, hessian: str = "auto", stop_rule: str = "ours"):
         if hessian not in HESSIANS:
             raise SdpError(f"hessian must be one of {', '.join(HESSIANS)}, got {hessian!r}")
         if stop_rule not in STOP_RULES:
             raise SdpError(f"stop_rule must be one of {', '.join(STOP_RULES)}, got {stop_rule!r}")
+        if hessian == "auto":
+            hessian = "gn" if gauss_newton(task) else "psd"
+        elif hessian == "gn" and not gauss_newton(task):
+            raise SdpError(f"hessian 'gn' needs a task that declares its costs as residuals; {task.name} does not")
         self.hessian, self.stop_rule = hessian, stop_rule
         self.task, self.T = task, int(task.T if horizon is None else horizon)
         if self.T < 1 or int(max_iter) < 0 or not tol > 0:
             raise SdpError("horizon must be >= 1, max_iter >= 0 and tol > 0")
         self.max_iter, self.tol = int(max_iter), float(tol)
-        funcs = ddp_functions(task, self.T)
+        funcs = ddp_functions(task, self.T, hessian)
         jit = jit_enabled_by_default() if jit is None else bool(jit)
         lib = None
         if jit:
@@ -149,6 +157,8 @@ class DDPSolver(PassesMixin, GainsMixin):
         if self.general:
             self._general_derivatives(d, X, xi, al_state)
         d["lTxx_exact"] = d["lTxx"]                         # (the stored gains' terminal Hessian)
+        if self.hessian == "gn":
+            d["lTxx_exact"] = _cols(self._map("sdp_ddp_term_exact", n)(X[:, -1].T, xi.T), n, nx, nx)
         if self.hessian == "psd":
             _psd_model(d)
         return d

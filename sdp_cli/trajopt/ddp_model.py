@@ -32,11 +32,20 @@ def general(task) -> bool:
     return task.nx != task.ndx or task.n_h > 0
 
 
-def ddp_functions(task, T: int) -> list[ca.Function]:
+def gauss_newton(task) -> bool:
+    """Whether ``task`` declares its costs as residuals (:meth:`~sdp_cli.tasks.base.Task._running_residual`),
+    so that box-FDDP can iterate with the Gauss-Newton model of their Hessians."""
+    x, u, xi = ca.SX.sym("x", task.nx), ca.SX.sym("u", task.nu), ca.SX.sym("xi", task.n_xi)
+    return task._running_residual(x, u, xi) is not None and task._terminal_residual(x, xi) is not None
+
+
+def ddp_functions(task, T: int, hessian: str = "psd") -> list[ca.Function]:
     """The functions box-FDDP evaluates:
 
-    - ``sdp_ddp_stage(x, u, xi) -> (f, A, B, l, l_x, l_u, l_xx, l_uu, l_ux)`` (ambient derivatives)
-    - ``sdp_ddp_term(x, xi) -> (l_T, l_Tx, l_Txx)``
+    - ``sdp_ddp_stage(x, u, xi) -> (f, A, B, l, l_x, l_u, l_xx, l_uu, l_ux)`` (ambient derivatives; with
+      ``hessian="gn"`` the cost Hessian blocks are the Gauss-Newton ``r_z' r_z`` of the task's residuals)
+    - ``sdp_ddp_term(x, xi) -> (l_T, l_Tx, l_Txx)`` (likewise), and with ``"gn"``
+      ``sdp_ddp_term_exact(x, xi) -> l_Txx`` (the exact terminal Hessian, for the stored gains)
     - ``sdp_ddp_step(x, u) -> f``
     - ``sdp_ddp_hess(x, u, xi, lam) -> d^2/d(x,u)^2 [l - lam' f]`` (the exact Hessian of the gains)
     - ``sdp_ddp_roll_T<T>(x^_0, U, k, K, X, gaps, alpha, xi) -> (X^_{1..T} (nx, T), U^ (nu, T), cost)``: the
@@ -57,10 +66,23 @@ def ddp_functions(task, T: int) -> list[ca.Function]:
     l_run = task.f_running_cost(x, u, xi)
     l_T = task.f_terminal_cost(x, xi)
     lu = ca.gradient(l_run, u)
-    stage = ca.Function("sdp_ddp_stage", [x, u, xi],
-                        [f, ca.jacobian(f, x), ca.jacobian(f, u), l_run, ca.gradient(l_run, x), lu,
-                         ca.hessian(l_run, x)[0], ca.hessian(l_run, u)[0], ca.jacobian(lu, x)])
-    term = ca.Function("sdp_ddp_term", [x, xi], [l_T, ca.gradient(l_T, x), ca.hessian(l_T, x)[0]])
+    first = [f, ca.jacobian(f, x), ca.jacobian(f, u), l_run, ca.gradient(l_run, x), lu]
+    if hessian == "gn":
+        # the residual Jacobians in SX, their products r_z' r_z as dense matrix products (MX): expanded
+        # symbolically, the products of the kinematics' Jacobians are C that takes the compiler minutes
+        r, r_T = task._running_residual(x, u, xi), task._terminal_residual(x, xi)
+        sx_stage = ca.Function("s", [x, u, xi], first + [ca.jacobian(r, x), ca.jacobian(r, u)])
+        sx_term = ca.Function("t", [x, xi], [l_T, ca.gradient(l_T, x), ca.jacobian(r_T, x)])
+        xm, um, xim = ca.MX.sym("x", task.nx), ca.MX.sym("u", task.nu), ca.MX.sym("xi", task.n_xi)
+        *head, rx, ru = sx_stage(xm, um, xim)
+        stage = ca.Function("sdp_ddp_stage", [xm, um, xim],
+                            head + [ca.mtimes(rx.T, rx), ca.mtimes(ru.T, ru), ca.mtimes(ru.T, rx)])
+        lT, lTx, rTx = sx_term(xm, xim)
+        term = ca.Function("sdp_ddp_term", [xm, xim], [lT, lTx, ca.mtimes(rTx.T, rTx)])
+    else:
+        stage = ca.Function("sdp_ddp_stage", [x, u, xi],
+                            first + [ca.hessian(l_run, x)[0], ca.hessian(l_run, u)[0], ca.jacobian(lu, x)])
+        term = ca.Function("sdp_ddp_term", [x, xi], [l_T, ca.gradient(l_T, x), ca.hessian(l_T, x)[0]])
     step = ca.Function("sdp_ddp_step", [x, u], [f])
     z = ca.vertcat(x, u)
     hess = ca.Function("sdp_ddp_hess", [x, u, xi, lam], [ca.hessian(l_run - ca.dot(lam, f), z)[0]])
@@ -86,6 +108,8 @@ def ddp_functions(task, T: int) -> list[ca.Function]:
     args = riccati.mx_in()
     riccati = ca.Function(f"sdp_ddp_riccati_T{T}", args, riccati.call(args))
     funcs = [stage, term, step, hess, roll, riccati]
+    if hessian == "gn":
+        funcs.append(ca.Function("sdp_ddp_term_exact", [x, xi], [ca.hessian(l_T, x)[0]]))
     if general(task):
         dx = ca.SX.sym("dx", task.ndx)
         xx = task.f_integrate(x, dx)
