@@ -8,10 +8,12 @@ with the rollout's conventions (sdp_cli.algorithm.rollout.rollout_policy, instan
 loop's own evaluation set; its inverse-dynamics row must equal the run's eval.csv) and on the run's own training
 instances, where the memorizer reaches TO's cost.
 
-    python bench/conversion_confirmation.py --runs runs/fig1 --prefix quadrotor-0-
+    python bench/conversion_confirmation.py --runs runs/fig1 --prefix quadrotor-0- [--keep-missing]
 
 The file keeps what lies below its line `<!-- earlier confirmations -->` (the confirmations of earlier results
-versions, which the ledger cites); everything above it is this bench's.
+versions, which the ledger cites); everything above it is this bench's. With ``--keep-missing`` the per-run rows
+of the file's "Per run" table whose run is not in ``--runs`` stay (as `sdp report --keep-missing` keeps the
+report's earlier rows: run folders that are gone keep their measured rows), and the summary is taken over all.
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ def main() -> None:
     ap.add_argument("--methods", default="sdp,dp")
     ap.add_argument("--n-test", type=int, default=50)
     ap.add_argument("--out", type=Path, default=Path("results/tasks/confirmation.md"))
+    ap.add_argument("--keep-missing", action="store_true",
+                    help="keep the per-run rows of --out whose run folder is not in --runs")
     a = ap.parse_args()
     import torch
 
@@ -70,6 +74,12 @@ def main() -> None:
                                                   else float("nan"))})
                 print(rows[-1], flush=True)
     df = pd.DataFrame(rows)
+    kept = 0
+    if a.keep_missing and a.out.is_file():
+        old = per_run_table(a.out.read_text())
+        old = old[~old.run.isin(set(df.run))] if len(old) else old
+        kept = old.run.nunique() if len(old) else 0
+        df = pd.concat([old, df], ignore_index=True).sort_values(["method", "n_traj", "seed", "conversion", "instances"])
     summary = (df.groupby(["method", "n_traj", "conversion", "instances"], sort=True)
                  .agg(runs=("run", "count"), success=("success", "mean"),
                       final_distance_median=("final distance median (m)", "median"))
@@ -78,7 +88,9 @@ def main() -> None:
     text = ["# Confirmation: fig1's quadrotor policies under both conversions (bench/conversion_confirmation.py)", "",
             f"Written by `python bench/conversion_confirmation.py --runs {a.runs} --prefix {a.prefix} --methods "
             f"{a.methods}` on {stamp}, code revision `{code_revision()}`, {platform.node()} ({platform.machine()}), "
-            f"{time.perf_counter() - t0:.0f} s.", "",
+            f"{time.perf_counter() - t0:.0f} s"
+            + (f"; the rows of {kept} runs not in `--runs` are kept from the file's earlier version (`--keep-missing`)."
+               if kept else "."), "",
             "Runs: fig1's own (one iteration of Algorithm 1, 2e4 epochs, T_h 32, T_a 31), each final policy rolled "
             "out from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
             "its own training instances and on the 50 test instances of test seed 0. Success: final distance within "
@@ -97,6 +109,20 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
     print(f"wrote {a.out}")
+
+
+def per_run_table(text: str) -> pd.DataFrame:
+    """The "## Per run" markdown table of an earlier output as a frame (numbers as floats, n_traj and seed as ints)."""
+    lines = text.split("## Per run", 1)[1].split(MARKER, 1)[0].splitlines() if "## Per run" in text else []
+    table = [ln for ln in lines if ln.startswith("|")]
+    if len(table) < 3:
+        return pd.DataFrame()
+    cells = [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in table]
+    df = pd.DataFrame(cells[2:], columns=cells[0])
+    for c in df.columns:
+        if c not in ("run", "method", "conversion", "instances"):
+            df[c] = df[c].astype(float)
+    return df.astype({"n_traj": int, "seed": int})
 
 
 if __name__ == "__main__":

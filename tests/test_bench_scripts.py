@@ -93,3 +93,22 @@ def test_action_noise_bench_perturbs_only_the_played_rows_in_the_networks_units(
     assert np.all(NoisyMemorizer(Base(), scale, 0.0, "white", seed=0).predict_chunk(xis, None, None) == 1.0)
     b = mod.blocks(12, 6)
     assert [np.arange(12)[s].tolist() for s in b.values()] == [list(range(6)), [6, 7, 8], [9, 10, 11]]
+
+
+def test_conversion_confirmation_reads_back_the_per_run_rows_it_wrote():
+    """``--keep-missing`` keeps the rows of runs whose folders are gone: the "Per run" table it wrote reads back
+    as the same rows (to the 3 significant digits it prints), NaNs included."""
+    import pandas as pd
+
+    mod = _bench("conversion_confirmation")
+    df = pd.DataFrame({"run": ["quadrotor-0-dp-n2-s0", "quadrotor-0-sdp-n8-s3"], "method": ["dp", "sdp"],
+                       "n_traj": [2, 8], "seed": [0, 3], "conversion": ["tracking", "inverse-dynamics"],
+                       "instances": ["train (2)", "test (50)"], "success": [0.5, 0.0],
+                       "final distance median (m)": [0.0412, 3.52], "policy cost median": [0.842, 693.0],
+                       "cost / TO median": [1.33, float("nan")]})
+    text = "\n".join(["# x", "", "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), "", mod.MARKER,
+                      "", "## Per run", "", "| run |", "|---|", "| old |"])
+    back = mod.per_run_table(text)
+    assert list(back.columns) == list(df.columns) and len(back) == 2      # the earlier confirmations are not read
+    pd.testing.assert_frame_equal(back.reset_index(drop=True), df, check_dtype=False)
+    assert mod.per_run_table("# nothing here").empty
