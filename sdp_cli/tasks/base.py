@@ -158,7 +158,7 @@ class Task(PolicyConventions, ABC):
         """Optional: a casadi vector ``r`` with ``l_t = 1/2 |r|^2`` (weights folded in), as crocoddyl's residual
         costs; box-FDDP then iterates with the Gauss-Newton model ``r_z' r_z`` of the cost Hessian
         (:mod:`sdp_cli.trajopt.ddp`). ``None`` (the default): the cost is not declared as a sum of squares, and
-        box-FDDP projects its exact Hessian onto the PSD cone. ``tests/test_tasks.py`` checks ``1/2 |r|^2`` against
+        box-FDDP projects its exact Hessian onto the PSD cone. ``tests/test_tasks_ur5.py`` checks ``1/2 |r|^2`` against
         :meth:`_running_cost`."""
         return None
 

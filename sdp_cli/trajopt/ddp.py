@@ -156,9 +156,9 @@ class DDPSolver(PassesMixin, GainsMixin):
         d["J"] = d["cost"] = d["l"].sum(1) + d["lT"]       # J: what the line search compares (with the penalty)
         if self.general:
             self._general_derivatives(d, X, xi, al_state)
-        d["lTxx_exact"] = d["lTxx"]                         # (the stored gains' terminal Hessian)
-        if self.hessian == "gn":
-            d["lTxx_exact"] = _cols(self._map("sdp_ddp_term_exact", n)(X[:, -1].T, xi.T), n, nx, nx)
+        # the stored gains' terminal Hessian: the exact one (the iterations' model is Gauss-Newton's under "gn")
+        d["lTxx_exact"] = (_cols(self._map("sdp_ddp_term_exact", n)(X[:, -1].T, xi.T), n, nx, nx)
+                           if self.hessian == "gn" else d["lTxx"])
         if self.hessian == "psd":
             _psd_model(d)
         return d

@@ -68,8 +68,8 @@ def ddp_functions(task, T: int, hessian: str = "psd") -> list[ca.Function]:
     lu = ca.gradient(l_run, u)
     first = [f, ca.jacobian(f, x), ca.jacobian(f, u), l_run, ca.gradient(l_run, x), lu]
     if hessian == "gn":
-        # the residual Jacobians in SX, their products r_z' r_z as dense matrix products (MX): expanded
-        # symbolically, the products of the kinematics' Jacobians are C that takes the compiler minutes
+        # the residual Jacobians in SX, their products r_z' r_z as dense matrix products (MX) in the generated
+        # code rather than multiplied out entry by entry into scalar expressions
         r, r_T = task._running_residual(x, u, xi), task._terminal_residual(x, xi)
         sx_stage = ca.Function("s", [x, u, xi], first + [ca.jacobian(r, x), ca.jacobian(r, u)])
         sx_term = ca.Function("t", [x, xi], [l_T, ca.gradient(l_T, x), ca.jacobian(r_T, x)])
