@@ -116,6 +116,7 @@ def small_repro(tmp_path_factory):
         pytest.fail("dvc is not installed in this environment (pip install -e '.[test]')")
     work = tmp_path_factory.mktemp("small") / "repo"
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env.pop("SDP_JIT_OPT", None)      # the user's gcc level (-O2), not the suite's -O0 (tests/conftest.py)
     cloned = _clean_checkout()
     if cloned:
         subprocess.run(["git", "clone", "-q", str(ROOT), str(work)], check=True)

@@ -202,6 +202,40 @@ def test_jit_cache_compiles_once_and_falls_back(tmp_path, monkeypatch):
         jitmod._compiler.cache_clear()
 
 
+@pytest.mark.parametrize("name", ["double_pendulum", "quadrotor-1"])
+def test_every_optimization_level_computes_the_same_bits(name, tmp_path, monkeypatch):
+    """SDP_JIT_OPT=-O0 (the default suite's, tests/conftest.py) and -O2 (the default) libraries of a task's NLP
+    functions give bit-identical outputs: the suite's level tests the pipeline's numbers. Fails if a flag that
+    contracts or reassociates floating-point operations (-ffast-math, -march=native's FMA) reaches one level."""
+    task = get_task(name)
+    nlp, lay = build_nlp(task, 6)
+    fns = nlp_functions(task, nlp, lay, "fatrop")
+    monkeypatch.setenv("SDP_CACHE_DIR", str(tmp_path))
+    libs = {}
+    for opt in ("-O0", "-O2"):
+        monkeypatch.setenv("SDP_JIT_OPT", opt)
+        libs[opt] = jitmod.compile_functions(f"sdp_test_levels_{name.replace('-', '_')}", fns)
+        assert libs[opt] is not None
+    assert len(list((tmp_path / "jit").glob("*.so"))) == 2          # the level is part of the cache key
+    rng = np.random.default_rng(3)
+    for f in fns:
+        ext = {opt: ca.external(f.name(), lib) for opt, lib in libs.items()}
+        for _ in range(3):
+            args = [rng.normal(scale=2.0, size=f.sparsity_in(i).nnz()) for i in range(f.n_in())]
+            args = [ca.DM(f.sparsity_in(i), a) for i, a in enumerate(args)]
+            out = {opt: e(*args) for opt, e in ext.items()}
+            out = {opt: o if isinstance(o, (list, tuple)) else [o] for opt, o in out.items()}
+            for a, b in zip(out["-O0"], out["-O2"]):
+                a, b = np.array(a.nonzeros(), float), np.array(b.nonzeros(), float)
+                assert a.tobytes() == b.tobytes(), f.name()
+
+
+def test_an_unknown_optimization_level_is_one_line(monkeypatch):
+    monkeypatch.setenv("SDP_JIT_OPT", "-Ofast")
+    with pytest.raises(SdpError, match="SDP_JIT_OPT='-Ofast': expected one of -O0, -O1, -O2, -O3"):
+        jitmod.opt_level()
+
+
 def test_unjitted_solver_gives_the_same_solution(solved):
     task, xi, res = solved["pendulum"]
     plain = get_solver(task, jit=False)

@@ -12,7 +12,11 @@ so the shared libraries are kept in a cache folder that survives across runs:
 
 Compilation is optional: :func:`compile_functions` returns ``None`` (and warns once)
 when gcc is missing or fails, and the caller falls back to casadi's virtual machine.
-Set ``SDP_JIT=0`` to disable it globally.
+Set ``SDP_JIT=0`` to disable it globally. ``SDP_JIT_OPT`` sets gcc's optimization level (``-O2`` by default;
+``-O0`` compiles the quadrotor's and UR5's functions 5-12x faster and runs them 2-2.6x slower, measured
+2026-12-07 on this project's 2-core Intel Xeon; the default test suite uses it, tests/conftest.py). Neither flag
+enables contraction or reassociation of floating-point operations, so every level computes the same bits
+(tests/test_jit.py compares ``-O0`` with ``-O2``); the level is part of the cache key.
 """
 
 from __future__ import annotations
@@ -29,10 +33,22 @@ from pathlib import Path
 
 import casadi as ca
 
+from sdp_cli.errors import SdpError
+
 log = logging.getLogger(__name__)
 
-#: compiler command (the source and output paths are appended)
-CFLAGS = ("-O2", "-fPIC", "-shared")
+#: compiler flags besides the optimization level (the source and output paths are appended)
+CFLAGS = ("-fPIC", "-shared")
+#: the optimization levels ``SDP_JIT_OPT`` may name
+OPT_LEVELS = ("-O0", "-O1", "-O2", "-O3")
+
+
+def opt_level() -> str:
+    """gcc's optimization level: ``$SDP_JIT_OPT`` (one of :data:`OPT_LEVELS`), ``-O2`` by default."""
+    opt = os.environ.get("SDP_JIT_OPT", "").strip() or "-O2"
+    if opt not in OPT_LEVELS:
+        raise SdpError(f"SDP_JIT_OPT={opt!r}: expected one of {', '.join(OPT_LEVELS)}")
+    return opt
 
 
 def cache_dir() -> Path:
@@ -69,6 +85,7 @@ def compile_functions(name: str, functions: list[ca.Function]) -> ca.Importer | 
     if cc is None:
         _warn_once("sdp: no C compiler found, casadi functions are not compiled (slower solves)")
         return None
+    flags = (opt_level(), *CFLAGS)
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     for f in functions:
         gen.add(f)
@@ -76,7 +93,7 @@ def compile_functions(name: str, functions: list[ca.Function]) -> ca.Importer | 
         gen.generate(tmp + os.sep)
         src = Path(tmp) / f"{name}.c"
         code = src.read_bytes()
-        key = hashlib.sha256(code + repr((cc, CFLAGS, ca.__version__)).encode()).hexdigest()[:20]
+        key = hashlib.sha256(code + repr((cc, flags, ca.__version__)).encode()).hexdigest()[:20]
         out_dir = cache_dir() / "jit"
         lib = out_dir / f"{name}_{key}.so"
         if not lib.is_file():
@@ -85,7 +102,7 @@ def compile_functions(name: str, functions: list[ca.Function]) -> ca.Importer | 
                 out_dir.mkdir(parents=True, exist_ok=True)
                 fd, tmp_lib = tempfile.mkstemp(prefix=f".{lib.name}.", suffix=".tmp", dir=out_dir)
                 os.close(fd)
-                proc = subprocess.run([cc, *CFLAGS, str(src), "-o", tmp_lib, "-lm"],
+                proc = subprocess.run([cc, *flags, str(src), "-o", tmp_lib, "-lm"],
                                       capture_output=True, text=True)
                 if proc.returncode != 0:
                     Path(tmp_lib).unlink(missing_ok=True)
