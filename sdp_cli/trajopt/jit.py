@@ -13,10 +13,11 @@ so the shared libraries are kept in a cache folder that survives across runs:
 Compilation is optional: :func:`compile_functions` returns ``None`` (and warns once)
 when gcc is missing or fails, and the caller falls back to casadi's virtual machine.
 Set ``SDP_JIT=0`` to disable it globally. ``SDP_JIT_OPT`` sets gcc's optimization level (``-O2`` by default;
-``-O0`` compiles the quadrotor's and UR5's functions 5-12x faster and runs them 2-2.6x slower, measured
-2026-12-07 on this project's 2-core Intel Xeon; the default test suite uses it, tests/conftest.py). Neither flag
-enables contraction or reassociation of floating-point operations, so every level computes the same bits
-(tests/test_jit.py compares ``-O0`` with ``-O2``); the level is part of the cache key.
+``-O0`` compiles the quadrotor's and UR5's functions 5-12x faster and runs them 2.2-2.7x slower, measured
+2026-12-07 on this project's 2-core Intel Xeon; the default test suite uses it, tests/conftest.py). No level
+reassociates floating-point operations, and without ``-march`` gcc emits no fused multiply-add, so ``-O0`` and
+``-O2`` compute the same bits (tests/test_trajopt.py::test_every_optimization_level_computes_the_same_bits); the
+level is part of the cache key.
 """
 
 from __future__ import annotations
