@@ -1,6 +1,6 @@
 """Suite-wide hooks: the test order is random and modules run on 2 processes (pyproject addopts: pytest-xdist,
 ``--dist loadscope``); say which order ran, so that an order-dependent failure can be replayed in one process
-with ``-p no:xdist --random-order-seed=N``."""
+with ``-n 0 --random-order-seed=N``."""
 
 from __future__ import annotations
 
@@ -32,4 +32,4 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     bucket = str(getattr(config.option, "random_order_bucket", "module")).removeprefix("default:")
     if seed is not None:
         terminalreporter.write_line(f"test order: --random-order-bucket={bucket} --random-order-seed={seed}"
-                                    " (in one process: add -p no:xdist)")
+                                    " (in one process: add -n 0)")
