@@ -20,25 +20,23 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.errors import SdpError
 from sdp_cli.report.ledger import ledger_rows, read_claims, write_ledger
-from sdp_cli.report.ledger.rules import RULES
+from sdp_cli.report.ledger.checks import experiments, judge_claim
 from sdp_cli.report.ledger.verdicts import ratio_verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
 
 
-def _bound_rules() -> dict:
-    """Each rule with its claim's params from the committed results/claims.yaml (over the shared rules)."""
+def _bound_claims() -> dict:
+    """Each claim of the committed results/claims.yaml, by id, as a function of the reports (and of the name of
+    the loop's TO, the way the ledger judges a TO family)."""
     claims, shared = read_claims(RESULTS / "claims.yaml")
-    out = {}
-    for c in claims:
-        params = {**shared, **(c.get("params") or {})}
-        out[c["rule"]] = (lambda fn, p: lambda res: fn(res, p))(RULES[c["rule"]], params)
-    return out
+    return {c["id"]: (lambda c: lambda res, loop_to=None: judge_claim(
+        c, res, shared, {"loop_to": loop_to} if loop_to else {}))(c) for c in claims}
 
 
-R = _bound_rules()
-fig2_only_sdp, speedup = R["fig2_only_sdp"], R["speedup"]
+C = _bound_claims()
+fig2_only_sdp, speedup = C[5], C[13]
 runner = CliRunner()
 
 
@@ -95,7 +93,7 @@ def test_rows_of_another_to_family_are_judged_apart(tmp_path):
     got = {r["id"]: r for r in ledger_rows(res, claims, rules)}
     for c in claims:
         a, b = ref[c["id"]], got[c["id"]]
-        if not any("fig2" in need.split("|") for need in c["needs"]):
+        if "fig2" not in experiments(c):
             assert (a["ours"], a["verdict"]) == (b["ours"], b["verdict"]), c["id"]        # no fig2: as it was
             continue
         assert b["ours"].startswith(f"TO by fatrop: {a['ours'] or '—'}; TO by box-FDDP: "), c["id"]
@@ -193,8 +191,6 @@ def test_table2c_times_the_smallest_t_a_within_its_own_rows():
     """Claim 7: the speed-up at T_a 1 divides each T_a-1 row's own TO-alone time (never the mean over the sweep's
     rows, timed under other load), per seed; the degradation is the paper's: worst at T_a >= 12 over worst at
     T_a <= 9."""
-    from sdp_cli.report.ledger.rules import table2c
-
     rows = []
     for seed in (0, 1):
         for t_a, cost, to in ((1, 30.0, 2.0), (4, 31.0, 8.0), (9, 33.5, 8.0), (12, 85.0, 8.0), (15, 137.0, 8.0)):
@@ -202,11 +198,13 @@ def test_table2c_times_the_smallest_t_a_within_its_own_rows():
                              run=f"dp-sdp-s{seed}", policy_cost_mean=cost, refined_solve_time_mean=0.1,
                              ss_refined_solve_time_mean=0.1, to_alone_solve_time_mean=to,
                              ss_to_alone_solve_time_mean=to, rollout_time_per_instance=1.0))
-    p = {"speedup": [4.1, 0.22], "degradation": [137, 33.5], "best_t_a_max": 9, "degraded_t_a_min": 12,
-         "trade_off_t_a": 9, "keep": 0.5, "partly": 0.1}
-    r = table2c({"fig2": pd.DataFrame(rows)}, p)
+    r = C[7]({"fig2": pd.DataFrame(rows)})
     assert "single shooting: 20x ± 0x (2 seeds)" in r.ours          # pooled over the sweep it would read 68x
     assert "vs worst 33.5 at T_a <= 9 (4.09x)" in r.ours and r.verdict == "reproduced"
+    assert "SDP at T_a 9 (the trade-off): rollout 1 s ± 0 s (2 seeds)" in r.ours     # shown, not judged
+    d = pd.DataFrame(rows)
+    d.loc[d.t_a == 1, "ss_to_alone_solve_time_mean"] = 0.2          # 2x at T_a 1: the speed-up is not reproduced
+    assert C[7]({"fig2": d}).verdict == "partly"
 
 
 def _fig2_rows(dp_success: float, sdp_done: int = 5) -> pd.DataFrame:
@@ -226,9 +224,12 @@ def _fig2_rows(dp_success: float, sdp_done: int = 5) -> pd.DataFrame:
 
 def test_only_sdp_solves_needs_every_method_and_failing_baselines():
     r = fig2_only_sdp({"fig2": _fig2_rows(dp_success=0.1)})
-    assert r.verdict == "partly" and "yet: PDDP, PDDP+S" in r.detail    # PDDP and PDDP+S not run, named as the paper
+    assert r.verdict == "partly" and "; PDDP: not run yet; PDDP+S: not run yet" in r.ours   # named, as the paper
     r = fig2_only_sdp({"fig2": _fig2_rows(dp_success=0.7)})
-    assert r.verdict == "partly" and "DP 80" in r.ours              # DP solves it too
+    assert r.verdict == "partly" and "DP: success 70% ± 0% (2 seeds), cost 80 ± 0 (2 seeds)" in r.ours   # DP solves it too
+    d = _fig2_rows(dp_success=0.1)
+    assert fig2_only_sdp({"fig2": d.assign(success_rate=0.1)}).verdict == "not reproduced"   # SDP's is required
+    assert fig2_only_sdp({"fig2": d[d.method == "dp"]}).verdict == "not run"
     d = _fig2_rows(dp_success=0.1)
     more = []
     for m in ("pddp", "pddp_s"):
@@ -243,21 +244,23 @@ def test_final_distance_and_reaching_the_goal_beside_the_cost():
     """The ledger gives success and the final distance beside the paper's cost (claim 5), and whether TO's
     converged solutions reach the goal beside its convergence (claim 6: box-FDDP converges on every instance to
     optima that mostly miss it)."""
-    from sdp_cli.report.ledger.rules import fig2_to_alone
-
     d = _fig2_rows(dp_success=0.1)
     d["goal_distance_median"] = np.where(d.method == "sdp", np.where(d.train_seed == 0, 0.1, 0.3), 0.5)
     r = fig2_only_sdp({"fig2": d})
-    assert "SDP 31 ± 0 (2 seeds), success 90% ± 0% (2 seeds), final distance 0.2 ± 0.196 m (2 seeds)" in r.ours
-    assert "DP 80 ± 0 (2 seeds), success 10% ± 0% (2 seeds), final distance 0.5 ± 0 m (2 seeds)" in r.ours
+    assert "SDP: success 90% ± 0% (2 seeds), cost 31 ± 0 (2 seeds), final distance 0.2 m ± 0.196 m (2 seeds)" in r.ours
+    assert "DP: success 10% ± 0% (2 seeds), cost 80 ± 0 (2 seeds), final distance 0.5 m ± 0 m (2 seeds)" in r.ours
     d = d.assign(to_alone_converged_rate=1.0, to_alone_iterations_mean=19.0, to_alone_cost_mean=44.0,
                  refined_iterations_mean=6.0, ss_to_alone_converged_rate=1.0, ss_to_alone_iterations_mean=100.0,
                  ss_refined_iterations_mean=20.0, ss_to_alone_cost_mean=34.0)
-    r = fig2_to_alone({"fig2": d}, {"fail_rate": 0.8})
-    assert "TO alone fails 0%" in r.ours and "reaching the goal" not in r.ours
+    r = C[6]({"fig2": d})
+    assert r.ours.startswith("TO alone fails to converge (multiple shooting): 0% (TO iterations alone 19 ± 0 (2 seeds)")
+    assert "reaches the goal" not in r.ours and r.verdict == "not reproduced"
     d = d.assign(to_alone_success_rate=0.08, refined_success_rate=np.where(d.train_seed == 0, 0.2, 0.4))
-    r = fig2_to_alone({"fig2": d}, {"fail_rate": 0.8, "loop_to": "box-FDDP"})
-    assert r.ours.endswith("; reaching the goal: TO alone 8% (box-FDDP), refined from the final SDP 30% ± 20% (2 seeds)")
+    r = C[6]({"fig2": d}, loop_to="box-FDDP")
+    assert "TO alone fails to converge (box-FDDP): 0% (" in r.ours
+    assert "TO alone reaches the goal 8% ± 0% (2 seeds), refined reaches the goal 30% ± 20% (2 seeds))" in r.ours
+    r = C[6]({"fig2": d.assign(ss_to_alone_converged_rate=0.5)})        # single shooting fails half the time
+    assert "TO alone fails to converge (single shooting): 50%" in r.ours and r.verdict == "partly"
 
 
 def test_unfinished_runs_are_left_out_and_named():
@@ -267,33 +270,42 @@ def test_unfinished_runs_are_left_out_and_named():
     assert r.verdict == "partly"
 
 
-def test_claims_name_their_rule_needs_and_params_and_bad_files_fail_cleanly(tmp_path):
-    """The claims file alone says what a claim needs, which rule judges it and with which numbers."""
-    claims = [{"id": 99, "claim": "c", "paper": "p", "needs": ["fig9"], "rule": "k_steps", "not_run": "est"}]
+def test_claims_are_checks_of_a_few_kinds_and_bad_files_fail_cleanly(tmp_path):
+    """The claims file alone says what judges a claim: its checks, each a kind with the report it reads and the
+    paper's numbers; a claim none of whose reports exists is *not run* with the saved estimate's hours."""
+    show = {"kind": "show", "experiment": "fig9", "columns": ["policy_cost_mean"]}
+    claims = [{"id": 99, "claim": "c", "paper": "p", "checks": [show], "not_run": "est"}]
     assert ledger_rows({}, claims)[0]["verdict"] == "not run"
     assert ledger_rows({}, claims)[0]["detail"] == "est"
     # a claim not run gives the runs and hours of its experiment's saved estimate, never hand-written ones
     est = pd.DataFrame({"run": ["a", "b", "c"], "total_cpu_h": [1.25, 2.0, 0.5]})
-    either = [{**claims[0], "needs": ["fig9|fig8"], "not_run": "not run yet."}]
+    either = [{**claims[0], "checks": [show, {**show, "experiment": "fig8"}], "not_run": "not run yet."}]
     assert ledger_rows({"estimates/fig9": est}, either)[0]["detail"] == (
         "not run yet; fig9: 3 runs, 3.8 h in one process (`sdp pipeline fig9 --estimate`, results/estimates/fig9.txt)")
-    two = [{"id": 2, "claim": "c", "paper": "p", "needs": ["fig1"], "rule": "dp_needs_more"}]
+    base = {"kind": "reaches", "experiment": "fig1", "method": "sdp", "against": "dp",
+            "tasks": ["pendulum", "ur5-fixed", "quadrotor-0"], "ratio": 5.0, "lower_bound_min": 3}
+    two = [{"id": 2, "claim": "c", "paper": "p", "checks": [base]}]
     shared = {"solved": 0.5, "within": 0.1, "keep": 0.5, "partly": 0.1}
     with pytest.raises(SdpError, match="claim 2: the reports lack"):         # a report without the columns
         ledger_rows({"fig1": pd.DataFrame({"task": ["pendulum"]})}, two, shared)
     d = _fig1_rows()
-    with pytest.raises(SdpError, match=r"claim 2: results/claims.yaml gives no 'within'"):   # a param missing
-        ledger_rows({"fig1": d}, two)
+    with pytest.raises(SdpError, match=r"claim 2, check 1 \(reaches\): results/claims.yaml gives no 'within'"):
+        ledger_rows({"fig1": d}, two)                                        # a threshold missing
     # the paper's number is the yaml's: another ratio, another verdict, same code
-    base = {"tasks": ["pendulum", "ur5-fixed", "quadrotor-0"], "ratio": 5.0, "lower_bound_min": 3}
     d = d.query("task == 'pendulum'")
-    v = [ledger_rows({"fig1": d}, [{**two[0], "params": {**base, "ratio": r}}], shared)[0]["verdict"]
+    v = [ledger_rows({"fig1": d}, [{**two[0], "checks": [{**base, "ratio": r}]}], shared)[0]["verdict"]
          for r in (5.0, 200.0)]
     assert v[0] != v[1] and v[1] == "not reproduced"
+    ok = {"id": 1, "claim": "c", "paper": "p"}
     for bad in ({"claims": [{"id": 1}]},
-                {"claims": [{"id": 1, "claim": "c", "paper": "p", "needs": ["fig1"], "rule": "nope"}]},
-                {"claims": [{"id": 1, "claim": "c", "paper": "p", "needs": "fig1", "rule": "k_steps"}]}):
-        (tmp_path / "claims.yaml").write_text(yaml.safe_dump(bad))
+                {"claims": [{**ok, "checks": [{"kind": "nope", "experiment": "fig1"}]}]},      # unknown kind
+                {"claims": [{**ok, "checks": "fig1"}]},                                        # not a list
+                {"claims": [{**ok, "checks": [{**base, "nope": 1}]}]},                         # unknown field
+                {"claims": [{**ok, "checks": [{"kind": "ratio", "experiment": "fig1", "method": "sdp"}]}]},   # no num
+                {"claims": [{**ok, "checks": [{**base, "at": "sometime"}]}]},                  # a bad value
+                {"claims": [{**ok, "checks": [{"kind": "ratio", "experiment": "fig1", "method": "sdp", "num": "a",
+                                                "den": "b", "paper": 2, "baselines": ["nope"]}]}]}):
+        (tmp_path / "claims.yaml").write_text(yaml.safe_dump({"rules": shared, **bad}))
         r = runner.invoke(app, ["report", "--ledger", str(tmp_path / "PAPER.md")])
         assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "PAPER.md").exists()
@@ -301,8 +313,24 @@ def test_claims_name_their_rule_needs_and_params_and_bad_files_fail_cleanly(tmp_
     assert r.exit_code == 1 and "nothing to do" in r.output
 
 
+def test_a_claim_of_a_new_shape_is_yaml_only():
+    """A claim the paper might make that no claim of ours has made yet ("DP needs fewer TO iterations than TO
+    alone on the double pendulum"): a yaml entry of existing kinds, judged, with its rule in words."""
+    claim = {"id": 14, "claim": "c", "paper": "p", "checks": [
+        {"kind": "solves", "experiment": "fig2", "method": "dp", "solves": False,
+         "less": [["refined_iterations_mean", "to_alone_iterations_mean"]]},
+        {"kind": "ratio", "experiment": "fig2", "method": "dp", "num": "to_alone_iterations_mean",
+         "den": "refined_iterations_mean", "paper": 3, "label": "fewer iterations"}]}
+    d = _fig2_rows(dp_success=0.1).assign(to_alone_iterations_mean=30.0, refined_iterations_mean=10.0)
+    r = judge_claim(claim, {"fig2": d}, {"solved": 0.5, "keep": 0.5, "partly": 0.1})
+    assert r.verdict == "reproduced" and "fewer iterations: 3x ± 0x (2 seeds)" in r.ours
+    assert r.rule.startswith("DP does not solve (< 50% success), TO iterations from the policy < TO iterations alone")
+    r = judge_claim(claim, {"fig2": d.assign(refined_iterations_mean=40.0)}, {"solved": 0.5, "keep": 0.5, "partly": 0.1})
+    assert r.verdict == "not reproduced" and "TO iterations from the policy 40 vs TO iterations alone 30" in r.ours
+
+
 def test_fig1_and_k_ablation_rules():
-    k_steps, sdp_reaches_to = R["k_steps"], R["sdp_reaches_to"]
+    k_steps, sdp_reaches_to = C[12], C[1]
 
     def fig1(never: str | None = None):
         rows = []
@@ -324,6 +352,8 @@ def test_fig1_and_k_ablation_rules():
     d.loc[d.n_traj == 2, "policy_cost_mean"] = 11.5
     r = sdp_reaches_to({"fig1": d})
     assert r.ours.count("from n_traj 8 (first within at n_traj 2)") == 3 and r.verdict == "reproduced"
+    r = sdp_reaches_to({"fig1": fig1().query("task != 'ur5-fixed'")})       # one of Fig. 1's tasks missing
+    assert r.verdict == "partly" and "fig1 not run on ur5-fixed (SDP)" in r.detail
 
     def ablation(c5: float):
         return pd.DataFrame([dict(k_rollout=k, epochs=2000, train_seed=s, policy_cost_mean=c, success_rate=0.9,
@@ -331,11 +361,13 @@ def test_fig1_and_k_ablation_rules():
                              for k, c in ((2, 30.0), (5, c5), (10, 15.0)) for s in (0, 1, 2)])
 
     assert k_steps({"ablation_k": ablation(16.0)}).verdict == "reproduced"
-    assert k_steps({"ablation_k": ablation(17.0)}).verdict == "not reproduced"      # 13% above K = 10
+    r = k_steps({"ablation_k": ablation(17.0)})                            # 13% above K = 10
+    assert r.verdict == "not reproduced" and "K=5's mean cost 17 ± 0 (3 seeds) vs K=10's 15 ± 0 (3 seeds) (not within 10%)" in r.ours
+    assert "SDP at K 2: cost 30 ± 0 (3 seeds), success 90% ± 0% (3 seeds)" in r.ours
 
 
 def test_quadrotor_rules_per_layout():
-    quadrotor9_times, quadrotor_precision = R["quadrotor9_times"], R["quadrotor_precision"]
+    quadrotor9_times, quadrotor_precision = C[10], C[9]
 
     def fig4(dp_violates: float, layouts=("quadrotor-0", "quadrotor-1", "quadrotor-3", "quadrotor-9")):
         rows = []
@@ -351,56 +383,52 @@ def test_quadrotor_rules_per_layout():
         return pd.DataFrame(rows)
 
     r = quadrotor_precision({"fig4": fig4(dp_violates=0.3)})
-    assert r.verdict == "reproduced" and "quadrotor-1: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%," in r.ours
+    assert r.verdict == "reproduced" and ("quadrotor-1, SDP: success 90% ± 0% (2 seeds), constraint violated 0% ± 0% "
+                                          "(2 seeds), final distance 0.01 m ± 0 m (2 seeds); DP: success 20% ± 0% "
+                                          "(2 seeds), constraint violated 30% ± 0% (2 seeds)") in r.ours
+    assert quadrotor_precision({"fig4": fig4(dp_violates=0.0)}).verdict == "reproduced"     # no more often
+    d = fig4(dp_violates=0.0)
+    d.loc[(d.method == "sdp") & (d.task != "quadrotor-0"), "violation_rate"] = 0.5          # more often: not here
+    assert quadrotor_precision({"fig4": d}).verdict == "partly"
+    d.loc[d.task == "quadrotor-0", "violation_rate"] = np.where(d[d.task == "quadrotor-0"].method == "sdp", 0.5, 0.0)
+    assert quadrotor_precision({"fig4": d}).verdict == "partly"           # quadrotor-0 (no obstacle) is exempt
     d = fig4(dp_violates=0.3)
     d["obstacles_violation_rate"] = np.where(d.method == "dp", 0.25, 0.0)
     d.loc[d.task == "quadrotor-0", "obstacles_violation_rate"] = np.nan                # no obstacle there
     r = quadrotor_precision({"fig4": d})
-    assert "constraint violated SDP 0% vs DP 30% (an obstacle: SDP 0% vs DP 25%)" in r.ours
-    assert "quadrotor-0: success SDP 90% vs DP 20%, constraint violated SDP 0% vs DP 30%, final" in r.ours
+    assert "constraint violated 30% ± 0% (2 seeds), an obstacle hit 25% ± 0% (2 seeds)" in r.ours
+    assert r.ours.startswith("quadrotor-0, SDP: success 90% ± 0% (2 seeds), constraint violated 0% ± 0% (2 seeds), final")
     assert quadrotor_precision({"fig4": fig4(dp_violates=0.3, layouts=("quadrotor-0",))}).verdict == "partly"
     d = fig4(dp_violates=0.3)
     d = d[~((d.task == "quadrotor-3") & (d.method == "sdp"))]                        # SDP not run there yet
     r = quadrotor_precision({"fig4": d})
-    assert "quadrotor-3: success DP 20%, constraint violated DP 30%, final distance DP 0.4 m; SDP not run yet" in r.ours
-    assert r.verdict == "partly" and "layouts without both SDP and DP yet: quadrotor-3" in r.detail
+    assert "quadrotor-3, SDP not run yet; DP: success 20% ± 0% (2 seeds)" in r.ours and r.verdict == "partly"
     r = quadrotor9_times({"fig4": fig4(dp_violates=0.3)})
-    assert ("SDP's evaluation: TO alone 16 s, from SDP 7 s; DP's evaluation: TO alone 16 s, from DP 9 s "
-            "(TO alone / from SDP: 2.29x ± 0x (2 seeds))") in r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
+    assert ("TO alone / from SDP in its own evaluation, multiple shooting: 2.29x ± 0x (2 seeds) (TO alone 16 s ± 0 s "
+            "(2 seeds), refine 7 s ± 0 s (2 seeds)); DP on quadrotor-9 in its own evaluation: TO alone 16 s ± 0 s "
+            "(2 seeds), refine 9 s ± 0 s (2 seeds)") == r.ours and r.verdict == "reproduced"   # 2.29x vs 2.09x
     # the ratio is the SDP loop's own evaluation's: a slower TO alone timed in DP's evaluation does not count
     d = fig4(dp_violates=0.3)
     d.loc[d.method == "dp", "to_alone_solve_time_mean"] = 40.0
     d.loc[d.method == "sdp", "to_alone_solve_time_mean"] = 9.0
     r = quadrotor9_times({"fig4": d})
-    assert "TO alone / from SDP: 1.29x ± 0x (2 seeds)" in r.ours and r.verdict == "partly"   # pooled: 3.5x
+    assert "multiple shooting: 1.29x ± 0x (2 seeds)" in r.ours and r.verdict == "partly"   # pooled: 3.5x
     assert quadrotor9_times({"fig4": fig4(0.3, layouts=("quadrotor-0",))}).verdict == "not run"
     # a loop partway (3 of its n_algo 5 iterations) is no final iteration, even when no run of the task is further
     d = fig4(dp_violates=0.3).assign(n_algo=lambda x: np.where(x.task == "quadrotor-9", 5, 1))
     part = d[(d.task != "quadrotor-9") | ((d.method == "dp") & (d.iteration < 3))]
     r = quadrotor9_times({"fig4": part})
     assert r.verdict == "not run" and r.detail == "runs not finished (left out): quadrotor-9-dp-s0, quadrotor-9-dp-s1"
+    assert r.ours == "TO alone / from SDP in its own evaluation, SDP on quadrotor-9: not run yet"
     r = quadrotor_precision({"fig4": part})
     assert "quadrotor-9" not in r.ours and "quadrotor-9-dp-s0" in r.detail
-    # both loops partway (SDP at 2, DP at 3 of 5): the times at iteration 2 are shown, never judged
-    part = d[(d.task != "quadrotor-9") | (d.iteration < np.where(d.method == "dp", 3, 2))].assign(
-        to_alone_converged_rate=0.6, refined_converged_rate=lambda x: np.where(x.method == "sdp", 0.9, 0.8))
-    part.loc[(part.task == "quadrotor-9") & (part.method == "dp") & (part.iteration == 2), "refined_solve_time_mean"] = 1.0
+    # DP finished, SDP partway (at 2 of 5): DP's final times shown, never judged; claim 9 names SDP unfinished
+    part = d[(d.task != "quadrotor-9") | (d.method == "dp") | (d.iteration < 2)]
     r = quadrotor9_times({"fig4": part})
-    assert r.verdict == "not run" and r.ours == (
-        "partway, not judged: iteration 2 of 5 (the latest both reached), multiple shooting: TO alone 16 s, "
-        "from SDP 7 s, from DP 9 s; converged: TO alone 60%, from SDP 90%, from DP 80%")
-    assert "quadrotor-9-sdp-s0" in r.detail
-    # DP finished, SDP partway (at 2 of 5): both at iteration 2, then DP's final times; claim 9 names SDP unfinished
-    part = d[(d.task != "quadrotor-9") | (d.method == "dp") | (d.iteration < 2)].assign(
-        to_alone_converged_rate=0.6, refined_converged_rate=0.9)
-    r = quadrotor9_times({"fig4": part})
-    assert r.verdict == "not run" and r.ours.startswith("partway, not judged: iteration 2 of 5 (the latest both reached)")
-    assert r.ours.endswith("; DP at its final iteration 5: TO alone 16 s, from DP 9 s") and "quadrotor-9-sdp-s0" in r.detail
-    assert "quadrotor-9: success DP 20%, constraint violated DP 30%, final distance DP 0.4 m; SDP not finished" in \
-        quadrotor_precision({"fig4": part}).ours
-    # DP finished, SDP not run: DP's time is shown, but the claim is about SDP
-    r = quadrotor9_times({"fig4": d[(d.task != "quadrotor-9") | (d.method == "dp")]})
-    assert r.verdict == "not run" and r.ours == "multiple shooting: DP's evaluation: TO alone 16 s, from DP 9 s"
+    assert r.verdict == "not run" and r.ours.startswith(
+        "TO alone / from SDP in its own evaluation, SDP on quadrotor-9: partway (no run at its final iteration yet); "
+        "DP on quadrotor-9 in its own evaluation: TO alone 16 s") and "quadrotor-9-sdp-s0" in r.detail
+    assert "quadrotor-9, SDP not finished; DP: success 20% ± 0% (2 seeds)" in quadrotor_precision({"fig4": part}).ours
 
 
 def _fig1_rows():
@@ -420,7 +448,7 @@ def _fig1_rows():
 
 
 def test_fig1_claims_on_synthetic_rows():
-    dp_needs_more, mlp_unstable, pendulum_torque = R["dp_needs_more"], R["mlp_unstable"], R["pendulum_torque"]
+    dp_needs_more, mlp_unstable, pendulum_torque = C[2], C[4], C[3]
 
     r = dp_needs_more({"fig1": _fig1_rows()})
     assert r.verdict == "reproduced" and "pendulum: SDP from n_traj 4, DP from n_traj 32 (8x)" in r.ours
@@ -454,18 +482,21 @@ def test_fig1_claims_on_synthetic_rows():
             "a larger one) (> 16x)") in r.ours
     assert mlp_unstable({"fig1": d[~d.method.isin(["pddp", "pddp_s"])]}).verdict == "not run"
     r = pendulum_torque({"fig1": _fig1_rows()})
-    assert r.verdict == "reproduced" and "success 90%" in r.ours
+    assert r.verdict == "reproduced" and r.ours.startswith("SDP on pendulum at n_traj 3: success 90% ± 0% (2 seeds)")
+    assert "DP on pendulum: best success over n_traj 10% (n_traj 1)" in r.ours
+    d = _fig1_rows()
+    d.loc[(d.method == "dp") & (d.n_traj == 64), "success_rate"] = 0.6       # DP solves at one n_traj: partly
+    assert pendulum_torque({"fig1": d}).verdict == "partly"
     r = mlp_unstable({"fig1": _fig1_rows()})
-    assert r.verdict == "reproduced" and "solves at n_traj 8, 16" in r.ours
-    assert "unstable on pendulum, quadrotor-0, ur5-fixed" in r.ours
-    assert "pendulum: DP 0%, PDDP 50%, PDDP+S 50%, SDP 0%; quadrotor-0: DP 0%, PDDP 50%, PDDP+S 50%" in r.ours
+    assert r.verdict == "reproduced" and "PDDP+S on ur5-fixed at epochs 2000 solves at n_traj 8, 16" in r.ours
+    assert ("evaluations with a diverged rollout, pendulum: DP 0%, PDDP 50%, PDDP+S 50%, SDP 0%; evaluations with a "
+            "diverged rollout, quadrotor-0: DP 0%, PDDP 50%, PDDP+S 50%") in r.ours
     # a task where one MLP has run (a sweep under way) is named, not judged on that MLP alone, and the
     # verdict waits for it
     d = _fig1_rows()
     d = d[~((d.task == "quadrotor-0") & (d.method == "pddp_s"))]
     r = mlp_unstable({"fig1": d})
-    assert "unstable on pendulum, ur5-fixed" in r.ours and r.verdict == "partly"
-    assert "not judged (one of PDDP and PDDP+S not run) on quadrotor-0" in r.ours
+    assert r.verdict == "partly" and "quadrotor-0: DP 0%, PDDP 50%, SDP 0% (not judged: PDDP+S not run)" in r.ours
     # stable on the pendulum (many seeds), diverging on every UR5 evaluation (one seed): unstable per task,
     # whatever the pooled share says -> partly
     d = _fig1_rows()
@@ -474,61 +505,69 @@ def test_fig1_claims_on_synthetic_rows():
     d = pd.concat([d[d.task != "ur5-fixed"]] * 5 + [d[(d.task == "ur5-fixed") & (d.train_seed == 0)]])
     d = d[d.task != "quadrotor-0"]
     r = mlp_unstable({"fig1": d})
-    assert "unstable on ur5-fixed" in r.ours and "pendulum: DP 0%, PDDP 0%, PDDP+S 0%, SDP 0%" in r.ours
+    assert "ur5-fixed: DP 0%, PDDP 100%, PDDP+S 100%, SDP 0%" in r.ours and "pendulum: DP 0%, PDDP 0%, PDDP+S 0%, SDP 0%" in r.ours
     assert r.verdict == "partly"
 
 
 def test_fig3_claim_per_horizon_and_action_length():
-    ur5_long_actions = R["ur5_long_actions"]
+    ur5_long_actions = C[8]
+    loops = ((32, 16), (32, 31), (64, 16), (64, 31), (64, 63))      # Fig. 3's, on both UR5 variants
 
-    rows = []
-    for task in ("ur5-rinit", "ur5-rinit-rtgt"):
-        for h, t_a in ((32, 16), (32, 31), (64, 63)):
-            for it in range(5):
-                rows.append(dict(task=task, method="sdp", horizon=h, t_a=t_a, train_seed=0, iteration=it,
-                                 run=f"{task}-sdp-h{h}-ta{t_a}", success_rate=0.8, refined_iterations_mean=20,
-                                 to_alone_iterations_mean=60, refined_cost_mean=5.0, to_alone_cost_mean=6.0))
-    r = ur5_long_actions({"fig3": pd.DataFrame(rows)})
-    assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63) at iteration 5: SDP success 80%" in r.ours
+    def fig3(pairs=loops, tasks=("ur5-rinit", "ur5-rinit-rtgt"), method="sdp", **cols):
+        rows = []
+        for task in tasks:
+            for h, t_a in pairs:
+                for it in range(5):
+                    rows.append({**dict(task=task, method=method, horizon=h, t_a=t_a, train_seed=0, iteration=it,
+                                        run=f"{task}-{method}-h{h}-ta{t_a}", success_rate=0.8, refined_iterations_mean=20,
+                                        to_alone_iterations_mean=60, refined_cost_mean=5.0, to_alone_cost_mean=6.0,
+                                        policy_cost_mean=7.0), **cols})
+        return pd.DataFrame(rows)
+
+    r = ur5_long_actions({"fig3": fig3()})
+    assert r.verdict == "reproduced" and "ur5-rinit (T_h 64, T_a 63), SDP: success 80% (1 seed), cost 7 (1 seed), " \
+        "TO iterations from the policy 20 vs TO iterations alone 60, cost refined from the policy 5 vs TO alone's cost 6" in r.ours
+    assert ur5_long_actions({"fig3": fig3(refined_cost_mean=6.5)}).verdict == "not reproduced"   # costlier than TO alone
+    assert ur5_long_actions({"fig3": fig3(pairs=loops[:3])}).verdict == "partly"               # Fig. 3's loops missing
     # DP alone says nothing of the claim: "not run", with DP's numbers and SDP named as missing
-    dp = pd.DataFrame(rows).assign(method="dp", success_rate=0.1, refined_iterations_mean=70)
-    dp["run"] = dp.run.str.replace("-sdp-", "-dp-")
+    dp = fig3(method="dp").assign(success_rate=0.1)
     r = ur5_long_actions({"fig3": dp})
-    assert r.verdict == "not run" and "SDP not run yet" in r.detail
-    assert "ur5-rinit (T_h 64, T_a 63) DP at iteration 5: success 10%, TO iterations 70 vs 60 alone" in r.ours
-    started = pd.concat([dp, pd.DataFrame(rows).query("iteration < 2")])      # SDP partway: named as unfinished
+    assert r.verdict == "not run" and "ur5-rinit (T_h 64, T_a 63), SDP not run yet; DP: success 10% (1 seed)" in r.ours
+    started = pd.concat([dp, fig3().query("iteration < 2")])                # SDP partway: named as unfinished
     r = ur5_long_actions({"fig3": started})
     assert r.verdict == "not run" and r.detail.startswith("runs not finished (left out): ")
-    assert "ur5-rinit-sdp-h64-ta63" in r.detail and "not run yet" not in r.detail
-    # SDP has finished one loop only: judged on it, DP beside it, the loop without SDP named
-    d = pd.concat([dp, pd.DataFrame(rows).query("t_a == 16")])
+    assert "ur5-rinit-sdp-h64-ta63" in r.detail and "SDP not finished; DP" in r.ours and "not run yet" not in r.ours
+    # SDP has finished one loop only: judged on it, DP beside it, the loops without any row named
+    d = pd.concat([fig3(pairs=[(32, 16), (64, 63)], tasks=("ur5-rinit",), method="dp").assign(success_rate=0.1),
+                   fig3(pairs=[(32, 16)], tasks=("ur5-rinit",))])
     r = ur5_long_actions({"fig3": d})
-    assert "ur5-rinit (T_h 32, T_a 16) at iteration 5: SDP success 80%" in r.ours
-    assert "; DP success 10%" in r.ours and "ur5-rinit (T_h 64, T_a 63): SDP not run yet, DP success 10%" in r.ours
-    assert r.verdict == "partly"
-    assert r.detail == ("SDP not run on Fig. 3's (T_h, T_a) ur5-rinit (32, 31), (64, 16), (64, 31), (64, 63); "
-                        "ur5-rinit-rtgt (32, 31), (64, 16), (64, 31), (64, 63)")
-    # with the saved estimate: each loop not run carries the hours of its runs without a row (SDP (32, 31) and
-    # DP (32, 31) of ur5-rinit: 3.0 h; DP (64, 63) has rows, so only SDP's 2.0 h there; none for a loop not estimated)
+    assert "ur5-rinit (T_h 32, T_a 16), SDP: success 80% (1 seed)" in r.ours and "; DP: success 10% (1 seed)" in r.ours
+    assert "ur5-rinit (T_h 64, T_a 63), SDP not run yet; DP: success 10%" in r.ours and r.verdict == "partly"
+    assert r.detail == ("fig3 not run on ur5-rinit (T_h 32, T_a 31) (SDP, DP), ur5-rinit (T_h 64, T_a 16) (SDP, DP), "
+                        "ur5-rinit (T_h 64, T_a 31) (SDP, DP), ur5-rinit-rtgt (T_h 32, T_a 16) (SDP, DP), "
+                        "ur5-rinit-rtgt (T_h 32, T_a 31) (SDP, DP), ur5-rinit-rtgt (T_h 64, T_a 16) (SDP, DP), "
+                        "ur5-rinit-rtgt (T_h 64, T_a 31) (SDP, DP), ur5-rinit-rtgt (T_h 64, T_a 63) (SDP, DP)")
+    # with the saved estimate: each loop without rows carries the hours of its runs (SDP and DP of ur5-rinit
+    # (32, 31): 3.0 h; none for a loop not estimated)
     est = pd.DataFrame({"run": ["ur5-rinit-sdp-n50-s0-h32-ta31", "ur5-rinit-dp-n50-s0-h32-ta31",
-                                "ur5-rinit-sdp-n50-s0-h64-ta63", "ur5-rinit-dp-h64-ta63",
                                 "ur5-rinit-rtgt-sdp-n100-s0-h32-ta31"],
-                        "task": ["ur5-rinit"] * 4 + ["ur5-rinit-rtgt"], "total_cpu_h": [2.0, 1.0, 2.0, 5.0, 4.0]})
+                        "task": ["ur5-rinit"] * 2 + ["ur5-rinit-rtgt"], "total_cpu_h": [2.0, 1.0, 4.0]})
     r = ur5_long_actions({"fig3": d, "estimates/fig3": est})
-    assert r.detail.startswith("SDP not run on Fig. 3's (T_h, T_a) ur5-rinit (32, 31) 3.0 h, (64, 16), (64, 31), "
-                               "(64, 63) 2.0 h; ur5-rinit-rtgt (32, 31) 4.0 h, (64, 16), (64, 31), (64, 63) (hours: ")
-    # SDP partway on (64, 63): "not finished" there (it was "not run yet" while the run was on its third iteration)
-    d = pd.concat([d, pd.DataFrame(rows).query("t_a == 63 and iteration < 2")])
+    assert r.detail.startswith("fig3 not run on ur5-rinit (T_h 32, T_a 31) (SDP, DP) 3.0 h, ur5-rinit (T_h 64, T_a 16) "
+                               "(SDP, DP), ")
+    assert "ur5-rinit-rtgt (T_h 32, T_a 31) (SDP, DP) 4.0 h" in r.detail and r.detail.endswith(
+        " (hours: the runs not made, `sdp pipeline fig3 --estimate` in one process, results/estimates/fig3.txt)")
+    # SDP partway on (64, 63): "not finished" there
+    d = pd.concat([d, fig3(pairs=[(64, 63)], tasks=("ur5-rinit",)).query("iteration < 2")])
     r = ur5_long_actions({"fig3": d})
-    assert "ur5-rinit (T_h 64, T_a 63): SDP not finished, DP success 10%" in r.ours and r.ours.count("not finished") == 2
-    assert r.ours.count("not run yet") == 2 and "ur5-rinit (T_h 32, T_a 31): SDP not run yet" in r.ours
-    assert "ur5-rinit-sdp-h64-ta63" in r.detail and "(64, 63)" not in r.detail
-    d = pd.DataFrame(rows)
+    assert "ur5-rinit (T_h 64, T_a 63), SDP not finished; DP: success 10%" in r.ours
+    assert "ur5-rinit-sdp-h64-ta63" in r.detail
+    d = fig3()
     d = d[~((d.t_a == 63) & (d.iteration == 4))]                          # an unfinished run
     r = ur5_long_actions({"fig3": d})
     assert r.verdict == "partly" and "ur5-rinit-sdp-h64-ta63" in r.detail
     # claim 13: one speed-up per loop, not pooled over Fig. 3's (T_h, T_a) loops of a task
-    d = pd.DataFrame(rows).assign(to_alone_solve_time_mean=1.0)
+    d = fig3(pairs=[(32, 16), (64, 63)]).assign(to_alone_solve_time_mean=1.0)
     d["refined_solve_time_mean"] = np.where(d.t_a == 16, 0.1, 2.0)         # 10x from one loop, 0.5x from the others
     r = speedup({"fig3": d})
     assert "fig3 ur5-rinit (T_h 32, T_a 16) multiple shooting: 10x" in r.ours
@@ -557,15 +596,19 @@ def test_report_then_ledger_from_run_folders(tmp_path, monkeypatch):
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "claims.yaml").write_text(yaml.safe_dump({
         "rules": {"solved": 0.5, "within": 0.1, "keep": 0.5, "partly": 0.1}, "claims": [
-            {"id": 12, "claim": "K = 5 diffusion steps suffice", "paper": "K = 5", "needs": ["ablation_k"],
-             "rule": "k_steps", "params": {"k": 5, "reference_k": 10}},
-            {"id": 8, "claim": "UR5", "paper": "p", "needs": ["fig3"], "rule": "ur5_long_actions",
+            {"id": 12, "claim": "K = 5 diffusion steps suffice", "paper": "K = 5", "checks": [
+                {"kind": "show", "experiment": "ablation_k", "at": "final_epochs", "method": "sdp", "per": ["k_rollout"],
+                 "columns": ["policy_cost_mean"]},
+                {"kind": "within", "experiment": "ablation_k", "at": "final_epochs", "method": "sdp",
+                 "value": {"where": {"k_rollout": 5}, "column": "policy_cost_mean", "label": "K=5"},
+                 "reference": {"where": {"k_rollout": 10}, "column": "policy_cost_mean", "label": "K=10"}}]},
+            {"id": 8, "claim": "UR5", "paper": "p", "checks": [{"kind": "solves", "experiment": "fig3", "method": "sdp"}],
              "not_run": "fig3: 92 h on 2 workers"}]}))
     r = runner.invoke(app, ["report", "--runs", "runs/ablation_k", "--out", "results/ablation_k",
                             "--experiment", "ablation_k", "--ledger", "results/PAPER.md"])
     assert r.exit_code == 0, r.output
     text = (tmp_path / "results" / "PAPER.md").read_text()
-    assert "K=5: 16 ± 0.98 (2 seeds)" in text and "K=10: 15.5 ± 0.98 (2 seeds)" in text
+    assert "SDP at K 5: cost 16 ± 0.98 (2 seeds)" in text and "K=5 16 ± 0.98 (2 seeds) vs K=10 15.5 ± 0.98 (2 seeds)" in text
     assert "| 12 | K = 5 diffusion steps suffice |" in text and "**reproduced** |" in text   # 16 <= 1.1 x 15.5
     assert "**not run** |" in text and "fig3: 92 h on 2 workers" in text
     assert "[ablation_k](ablation_k/README.md)" in text

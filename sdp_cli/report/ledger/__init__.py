@@ -4,16 +4,18 @@ The ledger reads what ``sdp report`` wrote, never a run folder: ``results/<exper
 (one row per run, iteration and T_a), ``results/bench/*.csv`` (speed ratios measured side by side by
 the ``bench/`` scripts), ``results/estimates/*.txt`` (saved ``sdp pipeline NAME --estimate`` tables: the
 hours of runs not made) and ``results/claims.yaml`` (hand-written: each claim's text, the paper's number,
-the experiments it needs, the rule that judges it with its parameters, the estimate of a run not made, and
-the notes that explain a difference; the thresholds shared by every claim are its top-level ``rules``).
-Our numbers and the verdicts are computed by the rules of :mod:`sdp_cli.report.ledger.rules` with the generic
-verdicts of :mod:`sdp_cli.report.ledger.verdicts`, the same for every claim:
+the checks that judge it, why it is not run and the notes that explain a difference; the thresholds shared by
+every check are its top-level ``rules``). A claim is data: a list of checks, each of a few kinds
+(:mod:`sdp_cli.report.ledger.checks`: ``reaches``, ``solves``, ``ratio``, ``degradation``, ``share``, ``within``,
+``near``, ``show``) that select rows of one report and judge them with the typed results of
+:mod:`sdp_cli.report.ledger.kinds`; one verdict per claim from its checks' parts
+(:func:`sdp_cli.report.ledger.base.claim_verdict`), the same for every claim:
 
 - a quantity is the mean over seeds with a 95% interval (normal approximation, :func:`mean_ci`);
 - a ratio claim r_paper > 1 is *reproduced* when ours keeps at least half of the paper's effect,
   ``r - 1 >= (r_paper - 1) / 2``; *partly* with at least a tenth of it; otherwise *not reproduced*;
   a range claim ("2-20x") is reproduced from its lower end;
-- a claim whose experiment has no report is *not run*, with the estimate from ``claims.yaml``;
+- a claim none of whose reports exists is *not run*, with the estimate of ``results/estimates/``;
   one with only part of its runs says *partly* and which part is missing;
 - a report with runs of two TO families (``to``: fatrop's multiple shooting, box-FDDP, the paper's family) is
   judged per family, and a claim that needs it gives both, with one verdict where they agree;
@@ -36,7 +38,8 @@ import pandas as pd
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.data.artifacts import atomic_write_bytes
 from sdp_cli.errors import SdpError
-from sdp_cli.report.ledger.rules import RULES, Row
+from sdp_cli.report.ledger.checks import claim_checks, experiments, judge_claim
+from sdp_cli.report.ledger.verdicts import Row
 from sdp_cli.report.ledger.verdicts import pct_text
 from sdp_cli.report.rows import TO_FAMILIES, last_iteration, newest_version, to_family, unfinished
 from sdp_cli.report.estimates import read_estimate
@@ -65,19 +68,9 @@ def load_results(results: Path) -> dict[str, pd.DataFrame]:
     return out
 
 
-def _available(needs, res) -> bool:
-    return all(any(alt in res for alt in need.split("|")) for need in needs)
-
-
-class Params(dict):
-    """A claim's parameters: a key the yaml does not give is one clear error, not a "missing column"."""
-
-    def __init__(self, cid: int, values: dict):
-        super().__init__(values)
-        self.cid = cid
-
-    def __missing__(self, key):
-        raise SdpError(f"claim {self.cid}: results/claims.yaml gives no {key!r} (in its params or the shared rules)")
+def _available(c: dict, res) -> bool:
+    """Whether one of the reports claim ``c``'s checks read exists."""
+    return any(e in res for e in experiments(c))
 
 
 def _shared(key: str) -> bool:
@@ -97,29 +90,27 @@ def not_run_text(c: dict, res: dict) -> str:
     it needs that has no report, the runs and hours of its saved estimate (``estimates/<experiment>`` in ``res``:
     ``"fig2: 40 runs, 20.5 h in one process (sdp pipeline fig2 --estimate, results/estimates/fig2.txt)"``)."""
     hours = []
-    for need in c["needs"]:
-        for exp in need.split("|"):
-            est = res.get(f"estimates/{exp}")
-            if exp not in res and est is not None and "total_cpu_h" in est:
-                hours.append(f"{exp}: {len(est)} runs, {est.total_cpu_h.sum():.1f} h in one process "
-                             f"(`sdp pipeline {exp} --estimate`, results/estimates/{exp}.txt)")
+    for exp in experiments(c):
+        est = res.get(f"estimates/{exp}")
+        if exp not in res and est is not None and "total_cpu_h" in est:
+            hours.append(f"{exp}: {len(est)} runs, {est.total_cpu_h.sum():.1f} h in one process "
+                         f"(`sdp pipeline {exp} --estimate`, results/estimates/{exp}.txt)")
     return "; ".join(x for x in (str(c.get("not_run", "")).strip().rstrip("."), *hours) if x)
 
 
 def _judge(c: dict, res: dict, rules: dict | None, loop_to: str | None = None) -> Row:
     cid = int(c["id"])
-    if not _available(c["needs"], res):
+    if not _available(c, res):
         return Row("", "not run", not_run_text(c, res))
     try:
-        return RULES[c["rule"]](res, Params(cid, {**(rules or {}), **(c.get("params") or {}),
-                                                  **({"loop_to": loop_to} if loop_to else {})}))
+        return judge_claim(c, res, rules, {"loop_to": loop_to} if loop_to else {})
     except (KeyError, AttributeError) as e:    # a column missing from an older report
         raise SdpError(f"claim {cid}: the reports lack {e} (re-run `sdp report` on the runs)") from None
 
 
 def _reports(c: dict, res: dict) -> list[pd.DataFrame]:
     """The report rows claim ``c`` needs that ``res`` holds (bench results and estimates left out)."""
-    return [res[alt] for need in c["needs"] for alt in need.split("|") if alt in res and not _shared(alt)]
+    return [res[e] for e in experiments(c) if e in res and not _shared(e)]
 
 
 def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
@@ -133,17 +124,17 @@ def _judge_family(c: dict, res: dict, rules: dict | None, fam: str) -> Row:
 
 
 def _run_versions(c: dict, res: dict) -> list[float]:
-    """The results version of every row claim ``c`` reads: the rows of the reports it needs, of its one task where
-    its ``params`` name one (``task``: the rule reads that task only; ``tasks`` and ``layouts`` are what a rule
-    requires, and it reads every task) (NaN: unknown; empty: a bench)."""
-    task = (c.get("params") or {}).get("task")
+    """The results version of every row claim ``c`` reads: the rows of the reports its checks read, of its one task
+    where every check selects that one (``where: {task: ...}``) (NaN: unknown; empty: a bench)."""
+    tasks = {(s.get("where") or {}).get("task") for s in c["checks"] if isinstance(s, dict)}
+    task = tasks.pop() if len(tasks) == 1 else None
     rows = [d[d["task"] == task] if task and "task" in d else d for d in _reports(c, res)]
     return [v for d in rows for v in (d["results_version"] if "results_version" in d else [float("nan")] * len(d))]
 
 
 def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | None = None) -> list[dict]:
-    """One row per claim: its rule (``rule:``, from :data:`RULES`) on ``res`` with the claim's ``params`` over the
-    shared ``rules``, or *not run* when an experiment it ``needs`` has no report. Where the reports it needs
+    """One row per claim: its checks (``checks:``) on ``res`` over the shared thresholds ``rules``, or *not run* when
+    none of the reports they read exists. Where the reports it needs
     also hold runs of another TO family (:func:`load_results`), the rule judges each family apart and the row
     gives both (``TO by fatrop: ...; TO by box-FDDP: ...``), with one verdict where they agree. ``runs``: the
     results versions of the rows read (per family where they differ: ``1 (fatrop); 4 (box-FDDP)``), ``versions``
@@ -152,8 +143,8 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
     rows = []
     for c in claims:
         row = _judge(c, res, rules)
-        fams = [f for f in others if _available(c["needs"], _family_results(res, f))
-                and any(f"{alt}/{f}" in res for need in c["needs"] for alt in need.split("|"))]
+        fams = [f for f in others if _available(c, _family_results(res, f))
+                and any(f"{e}/{f}" in res for e in experiments(c))]
         more = [(f, _judge_family(c, _family_results(res, f), rules, f)) for f in fams]
         versions = [(DEFAULT_TO, _run_versions(c, res))] + [(f, _run_versions(c, _family_results(res, f))) for f in fams]
         texts = [(f, version_text(vs) if vs else "") for f, vs in versions]
@@ -163,18 +154,19 @@ def ledger_rows(res: dict[str, pd.DataFrame], claims: list[dict], rules: dict | 
             row = Row("; ".join(f"TO by {name(f)}: {r.ours or '—'}" for f, r in parts),
                       parts[0][1].verdict if len({r.verdict for _, r in parts}) == 1 else
                       "; ".join(f"{r.verdict} ({name(f)})" for f, r in parts),
-                      " ".join(f"TO by {name(f)}: {r.detail.rstrip('.')}." for f, r in parts if r.detail))
+                      " ".join(f"TO by {name(f)}: {r.detail.rstrip('.')}." for f, r in parts if r.detail),
+                      row.rule)
         runs = (texts[0][1] if len({t for _, t in texts}) == 1 else
                 "; ".join(f"{t or '—'} ({TO_FAMILIES.get(f, f)})" for f, t in texts))
         known = {int(v) for _, vs in versions for v in vs if pd.notna(v)}
-        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail, "runs": runs,
+        rows.append({**c, "ours": row.ours, "verdict": row.verdict, "detail": row.detail, "rule": row.rule, "runs": runs,
                      "versions": known})
     return rows
 
 
 def read_claims(path: Path) -> tuple[list[dict], dict]:
-    """``(claims, rules)`` of a claims file; every claim names experiments it ``needs`` (a list; ``a|b``: either)
-    and a ``rule`` of :data:`RULES`."""
+    """``(claims, rules)`` of a claims file; every claim has ``checks``, each a kind of
+    :data:`sdp_cli.report.ledger.checks.CHECKS` with valid fields (checked here, before any report is read)."""
     import yaml
 
     try:
@@ -182,19 +174,17 @@ def read_claims(path: Path) -> tuple[list[dict], dict]:
     except (OSError, yaml.YAMLError) as e:
         raise SdpError(f"cannot read the claims file {path}: {e}") from None
     claims = (spec or {}).get("claims") if isinstance(spec, dict) else None
-    need = {"id", "claim", "paper", "needs", "rule"}
+    need = {"id", "claim", "paper", "checks"}
     if not isinstance(claims, list) or not all(isinstance(c, dict) and need <= set(c) for c in claims):
         raise SdpError(f"{path}: expected `claims:` a list of entries with {', '.join(sorted(need))}")
-    for c in claims:
-        if c["rule"] not in RULES:
-            raise SdpError(f"{path}: claim {c['id']}: unknown rule {c['rule']!r}; known: {', '.join(sorted(RULES))}")
-        if not (isinstance(c["needs"], list) and c["needs"]):
-            raise SdpError(f"{path}: claim {c['id']}: needs must be a list of experiments, got {c['needs']!r}")
-        if not isinstance(c.get("params") or {}, dict):
-            raise SdpError(f"{path}: claim {c['id']}: params must be a mapping")
     rules = spec.get("rules") or {}
     if not isinstance(rules, dict):
         raise SdpError(f"{path}: rules must be a mapping")
+    for c in claims:
+        try:
+            claim_checks(c, rules)
+        except SdpError as e:
+            raise SdpError(f"{path}: {e}") from None
     return claims, rules
 
 
@@ -228,7 +218,7 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
              "Written by `sdp report --ledger results/PAPER.md` from `results/*/all_runs.csv`, `results/bench/*.csv`,",
              "`results/estimates/*.txt` (hours of runs not made) and `results/claims.yaml` (the claims, the paper's",
              "numbers and the notes); do not edit by hand.",
-             "Rules (the same for every claim, `sdp_cli/report/ledger/verdicts.py`): means over seeds with 95% intervals; a",
+             "Rules (the same for every claim, `sdp_cli/report/ledger/base.py`): means over seeds with 95% intervals; a",
              f"ratio claim is *reproduced* when ours keeps at least {_share(rules['keep'])} of the paper's effect (r - 1), "
              "*partly* with",
              f"at least {_share(rules['partly'])} of it; a policy *solves* a task at >= {pct_text(rules['solved'])} "
@@ -241,10 +231,11 @@ def write_ledger(path: str | Path, claims_file: str | Path | None = None) -> Pat
                      f"{r['runs'] or '—'} | **{r['verdict']}** |")
     lines += ["", "## Notes per claim", ""]
     for r in rows:
-        text = " ".join(x.rstrip(".") + "." for x in (r["detail"], str(r.get("notes", "")).strip()) if x)
+        text = " ".join(x.rstrip(".") + "." for x in (r["detail"], r["rule"] and f"Rule: {r['rule']}",
+                                                      str(r.get("notes", "")).strip()) if x)
         if text:
             lines.append(f"- **{r['id']}.** {text}")
-    used = {alt for c in claims for need in c["needs"] for alt in need.split("|")}
+    used = {e for c in claims for e in experiments(c)}
     exps = sorted(k for k in res if k in used and not k.startswith("bench/"))
     lines += ["", "Reports read: " + (", ".join(f"[{e}]({e}/README.md)" for e in exps) or "none") + "; "
               + (", ".join(f"`{k}.csv`" for k in sorted(res) if k.startswith("bench/")) or "no bench results") + "."]

@@ -1,13 +1,13 @@
-"""The verdict kinds: the few ways a claim's number is judged, each a typed result that says its verdict and
-writes its own prose. A rule (:mod:`sdp_cli.report.ledger.rules`) reads the reports into these; the lines
-they are judged against come from results/claims.yaml (a claim's ``params`` over the shared ``rules``).
+"""The typed results a check judges with (:mod:`sdp_cli.report.ledger.checks`), each saying its verdict and
+writing its own prose; the lines they are judged against come from results/claims.yaml (a check's fields over
+the shared ``rules``).
 
 - :class:`Ratio`: per-seed ratios, each taken within one evaluation (never across evaluations made under
   other load), against the paper's ratio: *reproduced* when the mean keeps ``keep`` of the paper's effect
   (``r - 1 >= keep (r_paper - 1)``), *partly* with ``partly`` of it; a mean whose 95% interval straddles one
   of those two lines says so.
 - :class:`Within`: a mean cost within a share of a reference (TO alone's cost, another K's).
-- :class:`AtLeast`: a share (a success or failure rate) against the line from which it counts.
+- :class:`FirstN`: the smallest dataset from which a mean cost stays within a share of a reference.
 """
 
 from __future__ import annotations
@@ -80,17 +80,6 @@ class Within:
 
     def text(self) -> str:
         return f"{'within' if self.holds else 'not within'} {pct_text(self.share)}"
-
-
-@dataclass(frozen=True)
-class AtLeast:
-    """A share (success, failures, diverged evaluations) against the ``line`` from which it counts."""
-    share: float
-    line: float
-
-    @property
-    def holds(self) -> bool:
-        return bool(np.isfinite(self.share) and self.share >= self.line)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ class Row:
     ours: str
     verdict: str
     detail: str = ""     # what was measured beyond the headline number (shown in the notes column)
+    rule: str = ""       # the claim's checks in words (shown once in the notes column)
 
 
 def fmt(values, digits: int = 3, pct: bool = False, unit: str = "") -> str:
