@@ -141,7 +141,7 @@ class Share(Check):
                 if not any(m in share for m in self.methods):     # none of the judged methods here: nothing to say
                     continue
                 label = ", ".join(x for x in (join_words(self.label, f"({name})" if name else ""),
-                                              group_label(key, self.per, g, mine)) if x)
+                                              group_label(key, self.per, g[g.method.isin(self.methods)], mine)) if x)
                 pct = ", ".join(f"{method_label(m)} {100 * v:.0f}%" for m, v in share.items()) if len(
                     self.methods + self.than) > 1 else f"{100 * next(iter(share.values())):.0f}%"
                 beside = show(g[g.method.isin(self.methods)], [c.format(to=pre) for c in self.show])
