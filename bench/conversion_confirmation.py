@@ -1,12 +1,13 @@
-"""The confirmation of the conversions: fig1's own quadrotor runs rolled out under each conversion from the same
+"""The confirmation of the conversions: a report's quadrotor runs rolled out under each conversion from the same
 checkpoints, on the test set and on their own training instances. Writes results/tasks/confirmation.md.
 
-The runs are fig1's (`sdp pipeline fig1 --run --only quadrotor-0-sdp-n8-s0,...`: one iteration, 2e4 epochs,
-T_h 32, the default T_a 31), so the re-run of Fig. 1 reuses them. Each final policy (EMA weights) is rolled out
-with the rollout's conventions (sdp_cli.algorithm.rollout.rollout_policy, instance generators of seed 0) under
-`inverse-dynamics` and `tracking` (sdp_cli/tasks/conversion.py): on the 50 test instances of test seed 0 (the
-loop's own evaluation set; its inverse-dynamics row must equal the run's eval.csv) and on the run's own training
-instances, where the memorizer reaches TO's cost.
+The runs are an experiment's own (fig1's: one iteration, 2e4 epochs, T_h 32, the default T_a 31; fig4's: T_a 16,
+quadrotor-9 over 5 iterations). Each run's final policy (EMA weights of its last iteration, with the dataset it was
+trained on) is rolled out at the run's own loop T_a (its loop_config.json) with the rollout's conventions
+(sdp_cli.algorithm.rollout.rollout_policy, instance generators of seed 0) under `inverse-dynamics` and `tracking`
+(sdp_cli/tasks/conversion.py): on the 50 test instances of test seed 0 (the loop's own evaluation set; the row of
+the run's own conversion must equal its eval.csv) and on the run's own training instances, where the memorizer
+reaches TO's cost.
 
     python bench/conversion_confirmation.py --runs runs/fig1 --prefix quadrotor-0- [--keep-missing]
 
@@ -19,6 +20,7 @@ report's earlier rows: run folders that are gone keep their measured rows), and 
 from __future__ import annotations
 
 import argparse
+import json
 import datetime
 import platform
 import time
@@ -54,18 +56,21 @@ def main() -> None:
                   and p.name[len(a.prefix):].split("-")[0] in methods)
     rows, t0 = [], time.perf_counter()
     for run in runs:
-        data, _ = load_npz(run / "it0" / "data.npz", kind="dataset")
-        pol = load_policy(run / "it0" / "policy")
+        last = max((p.parent for p in run.glob("it*/policy")), key=lambda p: int(p.name[2:]))
+        data, _ = load_npz(last / "data.npz", kind="dataset")
+        pol = load_policy(last / "policy")
         task = pol.task
+        t_a = json.loads((run / "loop_config.json").read_text()).get("rollout", {}).get("t_a")
         to = np.array([task.cost(X, U, xi) for X, U, xi in zip(data["X"], data["U"], data["xi"])])
         sets = {f"train ({len(data['xi'])})": data["xi"], f"test ({a.n_test})": evaluation_xis(task, a.n_test, 0)}
         for conv in CONVERSIONS:
             for where, xis in sets.items():
-                cfg = RolloutConfig(n=len(xis), seed=0, conversion=conv).validate(pol)
+                cfg = RolloutConfig(n=len(xis), seed=0, t_a=t_a, conversion=conv).validate(pol)
                 with torch.no_grad():
                     ro = rollout_policy(pol, xis, cfg, generators=instance_generators(0, range(len(xis))))
                 ev = evaluate_rollouts(task, ro["X"], ro["U"], xis)
-                rows.append({"run": run.name, "method": pol.method, "n_traj": len(data["xi"]),
+                rows.append({"run": run.name, "task": pol.task_name, "T_a": cfg.t_a, "method": pol.method,
+                             "n_traj": len(data["xi"]),
                              "seed": pol.config.seed, "conversion": conv, "instances": where,
                              "success": float(np.mean(ev["reached"])),
                              "final distance median (m)": float(np.median(ev["goal_distance"])),
@@ -79,24 +84,26 @@ def main() -> None:
         old = per_run_table(a.out.read_text())
         old = old[~old.run.isin(set(df.run))] if len(old) else old
         kept = old.run.nunique() if len(old) else 0
-        df = pd.concat([old, df], ignore_index=True).sort_values(["method", "n_traj", "seed", "conversion", "instances"])
-    summary = (df.groupby(["method", "n_traj", "conversion", "instances"], sort=True)
+        df = pd.concat([old, df], ignore_index=True)
+    df = df.sort_values(["task", "method", "n_traj", "seed", "conversion", "instances"])[
+        ["run", "task", "T_a", *[c for c in df.columns if c not in ("run", "task", "T_a")]]]
+    summary = (df.groupby(["task", "T_a", "method", "n_traj", "conversion", "instances"], sort=True)
                  .agg(runs=("run", "count"), success=("success", "mean"),
                       final_distance_median=("final distance median (m)", "median"))
                  .reset_index().rename(columns={"final_distance_median": "final distance, median of runs (m)"}))
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    text = ["# Confirmation: fig1's quadrotor policies under both conversions (bench/conversion_confirmation.py)", "",
+    text = ["# Confirmation: the quadrotor policies under both conversions (bench/conversion_confirmation.py)", "",
             f"Written by `python bench/conversion_confirmation.py --runs {a.runs} --prefix {a.prefix} --methods "
             f"{a.methods}` on {stamp}, code revision `{code_revision()}`, {platform.node()} ({platform.machine()}), "
             f"{time.perf_counter() - t0:.0f} s"
             + (f"; the rows of {kept} runs not in `--runs` are kept from the file's earlier version (`--keep-missing`)."
                if kept else "."), "",
-            "Runs: fig1's own (one iteration of Algorithm 1, 2e4 epochs, T_h 32, T_a 31), each final policy rolled "
-            "out from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
+            "Runs: the experiment's own, each final policy (its last iteration) rolled out at its loop's T_a "
+            "from the same checkpoint under each conversion of predicted chunks (sdp_cli/tasks/conversion.py) on "
             "its own training instances and on the 50 test instances of test seed 0. Success: final distance within "
             "the task's tolerance (5 cm). Cost / TO: on the training instances, the rollout's cost over TO's on the "
             "same instance.", "",
-            "## Success per method, n_traj, conversion and instance set (mean over runs)", "",
+            "## Success per task, T_a, method, n_traj, conversion and instance set (mean over runs)", "",
             summary.to_markdown(index=False, floatfmt=".3g"), "",
             "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), ""]
     earlier = ""
@@ -104,7 +111,7 @@ def main() -> None:
         old = a.out.read_text()
         earlier = old.split(MARKER, 1)[1] if MARKER in old else "\n" + old
     if earlier.strip():
-        text.insert(text.index("## Success per method, n_traj, conversion and instance set (mean over runs)"),
+        text.insert(text.index("## Success per task, T_a, method, n_traj, conversion and instance set (mean over runs)"),
                     "The earlier confirmations (of earlier runs or results versions) are below the line at the end.\n")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
@@ -120,9 +127,12 @@ def per_run_table(text: str) -> pd.DataFrame:
     cells = [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in table]
     df = pd.DataFrame(cells[2:], columns=cells[0])
     for c in df.columns:
-        if c not in ("run", "method", "conversion", "instances"):
+        if c not in ("run", "task", "method", "conversion", "instances"):
             df[c] = df[c].astype(float)
-    return df.astype({"n_traj": int, "seed": int})
+    if "task" not in df:      # written before the column: fig1's quadrotor-0 runs, at the default T_a 31 of T_h 32
+        df.insert(1, "task", df.run.str.rsplit(pat="-", n=3).str[0])
+        df.insert(2, "T_a", 31)
+    return df.astype({"n_traj": int, "seed": int, "T_a": int})
 
 
 if __name__ == "__main__":

@@ -101,14 +101,18 @@ def test_conversion_confirmation_reads_back_the_per_run_rows_it_wrote():
     import pandas as pd
 
     mod = _bench("conversion_confirmation")
-    df = pd.DataFrame({"run": ["quadrotor-0-dp-n2-s0", "quadrotor-0-sdp-n8-s3"], "method": ["dp", "sdp"],
-                       "n_traj": [2, 8], "seed": [0, 3], "conversion": ["tracking", "inverse-dynamics"],
+    df = pd.DataFrame({"run": ["quadrotor-0-dp-n2-s0", "quadrotor-9-sdp-n30-s0"], "task": ["quadrotor-0", "quadrotor-9"],
+                       "T_a": [31, 16], "method": ["dp", "sdp"],
+                       "n_traj": [2, 100], "seed": [0, 0], "conversion": ["tracking", "inverse-dynamics"],
                        "instances": ["train (2)", "test (50)"], "success": [0.5, 0.0],
                        "final distance median (m)": [0.0412, 3.52], "policy cost median": [0.842, 693.0],
                        "cost / TO median": [1.33, float("nan")]})
-    text = "\n".join(["# x", "", "## Per run", "", df.to_markdown(index=False, floatfmt=".3g"), "", mod.MARKER,
-                      "", "## Per run", "", "| run |", "|---|", "| old |"])
-    back = mod.per_run_table(text)
+    page = lambda d: "\n".join(["# x", "", "## Per run", "", d.to_markdown(index=False, floatfmt=".3g"), "",  # noqa: E731
+                                mod.MARKER, "", "## Per run", "", "| run |", "|---|", "| old |"])
+    back = mod.per_run_table(page(df))
     assert list(back.columns) == list(df.columns) and len(back) == 2      # the earlier confirmations are not read
     pd.testing.assert_frame_equal(back.reset_index(drop=True), df, check_dtype=False)
     assert mod.per_run_table("# nothing here").empty
+    # a page written before the task and T_a columns (fig1's quadrotor-0 runs at the default T_a 31) reads back with them
+    old = mod.per_run_table(page(df.iloc[:1].drop(columns=["task", "T_a"])))
+    pd.testing.assert_frame_equal(old, df.iloc[:1], check_dtype=False)
