@@ -16,6 +16,8 @@ from sdp_cli.report.rows import method_label
 
 #: a part shown beside the judged ones, never judged
 SHOWN = "shown"
+#: the thresholds a kind may leave unset (``None``) in a check, to take from results/claims.yaml's shared ``rules``
+THRESHOLDS = ("solved", "within", "keep", "partly")
 
 
 @dataclass(frozen=True)
@@ -108,7 +110,9 @@ def build(spec: dict, shared: dict, registry: dict, where: str) -> Check:
     for name, f in known.items():
         if values.get(name) is None and name in shared and f.default is None:
             values[name] = shared[name]
-        if name not in values and f.default is MISSING and f.default_factory is MISSING:
+        absent = (name not in values and f.default is MISSING and f.default_factory is MISSING or
+                  name in THRESHOLDS and f.default is None and values.get(name) is None)
+        if absent:
             raise SdpError(f"{where} ({cls.kind}): results/claims.yaml gives no {name!r} "
                            "(in the check or the shared rules)")
     try:
@@ -117,11 +121,6 @@ def build(spec: dict, shared: dict, registry: dict, where: str) -> Check:
         raise SdpError(f"{where} ({cls.kind}): {e}") from None
     except TypeError as e:
         raise SdpError(f"{where} ({cls.kind}): {e}") from None
-    missing = [f.name for f in fields(cls) if f.default is None and getattr(check, f.name) is None
-               and f.name in ("solved", "within", "keep", "partly")]
-    if missing:
-        raise SdpError(f"{where} ({cls.kind}): results/claims.yaml gives no {missing[0]!r} "
-                       "(in the check or the shared rules)")
     return check
 
 

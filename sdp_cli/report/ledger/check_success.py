@@ -153,9 +153,9 @@ class Solves(Check):
     def _holds(self, g, theirs, key) -> tuple[bool, list[str]]:
         s = per_seed(g, "success_rate").mean()
         holds, words = (s >= self.solved) == self.solves, []
-        for a, b in [(a, b) for a, b in self.less] + [(a, b) for a, b in self.at_most]:
+        for (a, b), strict in [(p, True) for p in self.less] + [(p, False) for p in self.at_most]:
             va, vb = g[a].mean(), g[b].mean()
-            holds &= bool(va < vb) if [a, b] in self.less else bool(va <= vb)
+            holds &= bool(va < vb) if strict else bool(va <= vb)
             words.append(f"{column_text(a)[0]} {value_text(a, va)} vs {column_text(b)[0]} {value_text(b, vb)}")
         if self.beats:
             t = theirs[self.beats]
