@@ -20,16 +20,16 @@ report's earlier rows: run folders that are gone keep their measured rows), and 
 from __future__ import annotations
 
 import argparse
-import json
 import datetime
+import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 MARKER = "<!-- earlier confirmations -->"
-import pandas as pd
 
 
 def main() -> None:
@@ -45,6 +45,7 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
+    from sdp_cli.algorithm.loop import migrate_loop_dict
     from sdp_cli.data.artifacts import code_revision, load_npz
     from sdp_cli.policy import load_policy
     from sdp_cli.algorithm.rollout import (RolloutConfig, evaluate_rollouts, evaluation_xis, instance_generators,
@@ -60,7 +61,7 @@ def main() -> None:
         data, _ = load_npz(last / "data.npz", kind="dataset")
         pol = load_policy(last / "policy")
         task = pol.task
-        t_a = json.loads((run / "loop_config.json").read_text()).get("rollout", {}).get("t_a")
+        t_a = migrate_loop_dict(json.loads((run / "loop_config.json").read_text()))["rollout"].get("t_a")
         to = np.array([task.cost(X, U, xi) for X, U, xi in zip(data["X"], data["U"], data["xi"])])
         sets = {f"train ({len(data['xi'])})": data["xi"], f"test ({a.n_test})": evaluation_xis(task, a.n_test, 0)}
         for conv in CONVERSIONS:
