@@ -2,9 +2,10 @@
 checkpoints, on the test set and on their own training instances. Writes results/tasks/confirmation.md.
 
 The runs are an experiment's own (fig1's: one iteration, 2e4 epochs, T_h 32, the default T_a 31; fig4's: T_a 16,
-quadrotor-9 over 5 iterations). Each run's final policy (EMA weights of its last iteration, with the dataset it was
-trained on) is rolled out at the run's own loop T_a (its loop_config.json) with the rollout's conventions
-(sdp_cli.algorithm.rollout.rollout_policy, instance generators of seed 0) under `inverse-dynamics` and `tracking`
+quadrotor-9 over 5 iterations). Each run's final policy (EMA weights of its last finished iteration, with the
+dataset it was trained on: the loop's buffer under `--keep-buffer`) is rolled out at the run's own loop T_a (its
+loop_config.json) with the rollout's conventions (sdp_cli.algorithm.rollout.rollout_policy, instance generators of
+seed 0) under `inverse-dynamics` and `tracking`
 (sdp_cli/tasks/conversion.py): on the 50 test instances of test seed 0 (the loop's own evaluation set; the row of
 the run's own conversion must equal its eval.csv) and on the run's own training instances, where the memorizer
 reaches TO's cost.
@@ -57,8 +58,8 @@ def main() -> None:
                   and p.name[len(a.prefix):].split("-")[0] in methods)
     rows, t0 = [], time.perf_counter()
     for run in runs:
-        last = max((p.parent for p in run.glob("it*/policy")), key=lambda p: int(p.name[2:]))
-        data, _ = load_npz(last / "data.npz", kind="dataset")
+        last, trained_on = final_iteration(run)
+        data, _ = load_npz(trained_on, kind="dataset")
         pol = load_policy(last / "policy")
         task = pol.task
         t_a = migrate_loop_dict(json.loads((run / "loop_config.json").read_text()))["rollout"].get("t_a")
@@ -117,6 +118,21 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
     print(f"wrote {a.out}")
+
+
+def final_iteration(run: Path) -> tuple[Path, Path]:
+    """The run's last iteration whose training finished (``it<k>``) and the dataset that training read: the
+    loop's buffer (``it<k>/buffer.npz``, the union of every collection so far, which a loop with ``--keep-buffer``
+    trains iteration k > 0 on: sdp_cli.algorithm.loop.iteration_data) where the loop made one, else the
+    iteration's own collection (``it<k>/data.npz``)."""
+    from sdp_cli.algorithm.loop import train_done
+
+    done = [p.parent for p in run.glob("it*/policy") if p.parent.name[2:].isdigit() and train_done(p)]
+    if not done:
+        raise SystemExit(f"{run}: no iteration has finished training")
+    last = max(done, key=lambda p: int(p.name[2:]))
+    buffer = last / "buffer.npz"
+    return last, buffer if buffer.is_file() else last / "data.npz"
 
 
 def per_run_table(text: str) -> pd.DataFrame:

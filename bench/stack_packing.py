@@ -26,6 +26,11 @@ def across_sizes(names: list[str], runs: dict, stack: int) -> list[list[str]]:
     return [names[i:i + stack] for i in range(0, len(names), stack)]
 
 
+def shape(jobs, st) -> str:
+    """Stacks as ``RxB``: R runs, batches padded to B (the largest batch ``st[name].B`` of the stack)."""
+    return "+".join(f"{len(j)}x{max(st[n].B for n in j)}" for j in jobs)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--experiment", default="fig1")
@@ -65,8 +70,7 @@ def main() -> None:
         sub = {n: runs[n] for n in names}
         old, new = across_sizes(names, sub, a.stack), pack(sub, a.stack)
         h_old, h_new = sum(map(seconds, old)) / 3600, sum(map(seconds, new)) / 3600
-        shape = lambda jobs: "+".join(f"{len(j)}x{max(st[n].B for n in j)}" for j in jobs)
-        print(f"| {task} | {method} | {len(names)} | {shape(old)} | {h_old:.2f} | {shape(new)} | {h_new:.2f} | "
+        print(f"| {task} | {method} | {len(names)} | {shape(old, st)} | {h_old:.2f} | {shape(new, st)} | {h_new:.2f} | "
               f"{h_old / h_new:.2f}x |", flush=True)
     print("(stacks as R x B: R runs, batches padded to B)")
 

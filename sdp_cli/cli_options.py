@@ -14,11 +14,8 @@ from typer.core import TyperOption
 from sdp_cli.errors import SdpError
 from sdp_cli.tasks import task_names
 from sdp_cli.policy.registry import get_method, method_names
-from sdp_cli.policy.config import option_field, option_type, options
-from sdp_cli.policy.config import TrainConfig, options
-from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, _default, option_kind
-from sdp_cli.algorithm.loop_options import LoopRolloutConfig
-from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions
+from sdp_cli.policy.config import TrainConfig, option_field, option_type, options
+from sdp_cli.algorithm.loop_options import LoopAlgorithmOptions, LoopRolloutConfig, _default, option_kind
 
 
 def _flags_without_type() -> None:

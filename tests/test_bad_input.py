@@ -23,7 +23,6 @@ from sdp_cli.cli import app
 from sdp_cli.algorithm.collect import CollectConfig, collect
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.training.train import train
-from synthetic_dataset import write_dataset
 
 runner = CliRunner()
 TINY = {"down_dims": [8, 16], "step_embed_dim": 16, "n_groups": 4, "batch_size": 32, "horizon": 8}

@@ -7,6 +7,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,3 +117,27 @@ def test_conversion_confirmation_reads_back_the_per_run_rows_it_wrote():
     # a page written before the task and T_a columns (fig1's quadrotor-0 runs at the default T_a 31) reads back with them
     old = mod.per_run_table(page(df.iloc[:1].drop(columns=["task", "T_a"])))
     pd.testing.assert_frame_equal(old, df.iloc[:1], check_dtype=False)
+
+
+def test_conversion_confirmation_rolls_out_the_last_finished_iteration_with_the_data_it_trained_on(tmp_path):
+    """A loop with --keep-buffer trains iteration k > 0 on it<k>/buffer.npz (sdp_cli.algorithm.loop.iteration_data):
+    the bench must read that, not it<k>/data.npz (the last collection alone); an iteration whose training did not
+    finish (it3 here) is not the run's final policy; a run with no finished iteration is refused."""
+    from sdp_cli.policy.checkpoint import save_checkpoint
+
+    mod = _bench("conversion_confirmation")
+    run = tmp_path / "quadrotor-9-sdp-n30-s0"
+    for k, finished, buffer in [(0, True, False), (1, True, True), (2, True, True), (3, False, True), (10, False, False)]:
+        save_checkpoint(run / f"it{k}" / "policy" / "checkpoint.pt", {"finished": finished})
+        (run / f"it{k}" / "data.npz").write_bytes(b"")
+        if buffer:
+            (run / f"it{k}" / "buffer.npz").write_bytes(b"")
+    assert mod.final_iteration(run) == (run / "it2", run / "it2" / "buffer.npz")   # it2, not it10 (by number)
+    (run / "it2" / "buffer.npz").unlink()                                          # a --reset-buffer loop
+    assert mod.final_iteration(run) == (run / "it2", run / "it2" / "data.npz")
+    save_checkpoint(run / "it10" / "policy" / "checkpoint.pt", {"finished": True})
+    assert mod.final_iteration(run)[0] == run / "it10"                             # numeric order, not text
+    empty = tmp_path / "empty"
+    save_checkpoint(empty / "it0" / "policy" / "checkpoint.pt", {"finished": False})
+    with pytest.raises(SystemExit, match="no iteration has finished"):
+        mod.final_iteration(empty)

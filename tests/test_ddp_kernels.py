@@ -15,12 +15,7 @@ from sdp_cli.trajopt.ddp_passes import PassesMixin, _mv
 
 
 # ---------------------------------------------------------------------------- the array versions (the oracle)
-
-MAX_ITER = 100
-MIN_GRAD = 1e-10        # stop when the free gradient's norm is below this (relative to 1 + |g|)
-MIN_STEP = 1e-22        # line search gives up below this step
-ARMIJO = 0.1
-STEP_DEC = 0.6
+# (with boxqp's own stopping constants, MAX_ITER .. STEP_DEC, imported above)
 
 
 def _value(H, g, x):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from executor_jobs import BAD, always_exit, exit_once, flaky_jobs, square_or_raise
+from executor_jobs import always_exit, exit_once, flaky_jobs, square_or_raise
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.algorithm.collect import CollectConfig, collect

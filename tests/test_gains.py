@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-import casadi as ca
 import numpy as np
 import pytest
 

@@ -8,12 +8,12 @@ from torch.func import jvp
 
 from sdp_cli.policy.config import TrainConfig
 from sdp_cli.policy.diffusion import DiffusionUnetPolicy, make_scheduler
+from sdp_cli.policy.unet import ConditionalUnet1D
 
 
 def make_policy(cfg, A, n_obs, n_xi, ndx):
     """The diffusion policy object with these sizes."""
     return DiffusionUnetPolicy(cfg, {"n_action": A, "n_obs": n_obs, "n_xi": n_xi, "ndx": ndx})
-from sdp_cli.policy.unet import ConditionalUnet1D
 
 
 def test_default_unet_size_and_shapes():

@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from sdp_cli.cli import app
 from sdp_cli.data.artifacts import load_npz
 from sdp_cli.tasks import _REGISTRY, get_task, register, task_names
+from sdp_cli.tasks.base import Task
 from sdp_cli.checks.contract import action_rows, model_rows
 from toy_tasks import TurntableTask
 

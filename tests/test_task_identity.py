@@ -62,7 +62,7 @@ def test_changed_constant_compiles_a_new_library(monkeypatch, tmp_path):
     assert len(libs) == 1
     TrajOptSolver(PendulumTask(n_links=1, T=20), 20, "fatrop", 100, 1e-6, 1e-6, True)   # same problem: reused
     assert set((tmp_path / "jit").glob("*.so")) == libs
-    changed = _changed(monkeypatch, W_U=0.3)
+    _changed(monkeypatch, W_U=0.3)
     changed_1 = PendulumTask(n_links=1, T=20)
     s = TrajOptSolver(changed_1, 20, "fatrop", 100, 1e-6, 1e-6, True)
     new = set((tmp_path / "jit").glob("*.so")) - libs

@@ -40,10 +40,8 @@ from sdp_cli.algorithm.argmin import policy_outcomes
 from sdp_cli.data.artifacts import (atomic_write_bytes, file_sha256, json_default, load_meta, load_npz, load_timing,
                                     resolve_recorded, save_timing, timing_path)
 from sdp_cli.errors import SdpError
-from sdp_cli.tasks import get_task   # (casadi: only for older rollouts)
 from sdp_cli.tasks import get_task
-from sdp_cli.data.artifacts import artifact_writes
-from sdp_cli.data.artifacts import code_revision
+from sdp_cli.data.artifacts import artifact_writes, code_revision
 
 
 def _mean(a) -> float:

@@ -16,7 +16,6 @@ import numpy as np
 from sdp_cli.families import DEFAULT_TO
 from sdp_cli.algorithm.argmin import TIE_RTOL, WIN_BASELINE, WIN_NONE, WIN_POLICY, argmin_cost, policy_outcomes  # noqa: F401
 from sdp_cli.tasks import Task, get_task
-from sdp_cli.trajopt import get_to_solver
 from sdp_cli.trajopt import build_count, get_to_solver
 from sdp_cli.trajopt.single_shooting import get_single_shooting
 
