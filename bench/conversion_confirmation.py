@@ -54,8 +54,9 @@ def main() -> None:
     from sdp_cli.tasks.conversion import CONVERSIONS
 
     methods = a.methods.split(",")
-    runs = sorted(p for p in a.runs.iterdir() if p.name.startswith(a.prefix) and (p / "summary.csv").is_file()
-                  and p.name[len(a.prefix):].split("-")[0] in methods)
+    runs = selected_runs(a.runs, a.prefix, methods)
+    if not runs:
+        raise SystemExit(f"no finished run (with summary.csv) in {a.runs} named {a.prefix}* with a method in {methods}")
     rows, t0 = [], time.perf_counter()
     for run in runs:
         last, trained_on = final_iteration(run)
@@ -118,6 +119,13 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(text) + "\n" + MARKER + "\n\n" + earlier.lstrip("\n"))
     print(f"wrote {a.out}")
+
+
+def selected_runs(folder: Path, prefix: str, methods: list[str]) -> list[Path]:
+    """The finished runs (``summary.csv`` written) in ``folder`` whose name starts with ``prefix`` and has one of
+    ``methods`` as a dash-separated part (``quadrotor-9-sdp-n30-s0-ddp``: task, method, size, seed, tag)."""
+    return sorted(p for p in folder.iterdir() if p.name.startswith(prefix) and (p / "summary.csv").is_file()
+                  and set(p.name.split("-")) & set(methods))
 
 
 def final_iteration(run: Path) -> tuple[Path, Path]:

@@ -141,3 +141,18 @@ def test_conversion_confirmation_rolls_out_the_last_finished_iteration_with_the_
     save_checkpoint(empty / "it0" / "policy" / "checkpoint.pt", {"finished": False})
     with pytest.raises(SystemExit, match="no iteration has finished"):
         mod.final_iteration(empty)
+
+
+def test_conversion_confirmation_selects_finished_runs_by_prefix_and_method(tmp_path):
+    """``--prefix quadrotor-`` (every layout of fig4) selects by the method part of the run name, wherever it sits
+    after the prefix (at 82's first fig4 call it compared the layout's digit with the methods and found nothing)."""
+    mod = _bench("conversion_confirmation")
+    names = ["quadrotor-0-sdp-n50-s0", "quadrotor-1-dp-n50-s0", "quadrotor-9-sdp-n30-s0-ddp", "quadrotor-3-mlp-n50-s0",
+             "ur5-fixed-sdp-n8-s0", "quadrotor-3-sdp-n50-s0"]
+    for n in names:
+        (tmp_path / n).mkdir()
+        if n != "quadrotor-3-sdp-n50-s0":           # still running: no summary.csv
+            (tmp_path / n / "summary.csv").write_text("x\n")
+    got = [p.name for p in mod.selected_runs(tmp_path, "quadrotor-", ["sdp", "dp"])]
+    assert got == ["quadrotor-0-sdp-n50-s0", "quadrotor-1-dp-n50-s0", "quadrotor-9-sdp-n30-s0-ddp"]
+    assert [p.name for p in mod.selected_runs(tmp_path, "quadrotor-0-", ["dp"])] == []
