@@ -135,10 +135,11 @@ def final_iteration(run: Path) -> tuple[Path, Path]:
     iteration's own collection (``it<k>/data.npz``)."""
     from sdp_cli.algorithm.loop import train_done
 
-    done = [p.parent for p in run.glob("it*/policy") if p.parent.name[2:].isdigit() and train_done(p)]
-    if not done:
+    its = sorted((p.parent for p in run.glob("it*/policy") if p.parent.name[2:].isdigit()),
+                 key=lambda p: int(p.name[2:]), reverse=True)
+    last = next((it for it in its if train_done(it / "policy")), None)   # newest first: one checkpoint read
+    if last is None:
         raise SystemExit(f"{run}: no iteration has finished training")
-    last = max(done, key=lambda p: int(p.name[2:]))
     buffer = last / "buffer.npz"
     return last, buffer if buffer.is_file() else last / "data.npz"
 
