@@ -156,3 +156,21 @@ def test_conversion_confirmation_selects_finished_runs_by_prefix_and_method(tmp_
     got = [p.name for p in mod.selected_runs(tmp_path, "quadrotor-", ["sdp", "dp"])]
     assert got == ["quadrotor-0-sdp-n50-s0", "quadrotor-1-dp-n50-s0", "quadrotor-9-sdp-n30-s0-ddp"]
     assert [p.name for p in mod.selected_runs(tmp_path, "quadrotor-0-", ["dp"])] == []
+
+
+def test_chunk_consistency_is_zero_along_the_dynamics_and_sees_a_jump_in_position():
+    from sdp_cli.tasks import get_task
+
+    task = get_task("quadrotor-0")
+    rng = np.random.default_rng(0)
+    xi = task.sample_xi(rng)
+    U = task.u_hover + rng.uniform(-0.3, 0.3, (12, task.nu))          # a tumbling, accelerating flight
+    X = task.simulate(task.initial_state(xi), U)                        # (13, nx)
+    mm = _bench("chunk_consistency").row_mismatch
+    along = mm(task, X[None])
+    assert along.shape == (1, len(X) - 1) and np.max(along) < 1e-9
+    bad = X.copy()
+    bad[5, 2] += 0.01                                                   # row 5 one centimetre higher
+    jump = mm(task, bad[None])[0]
+    assert jump[4] == pytest.approx(1.0, rel=1e-6) and jump[5] == pytest.approx(1.0, rel=1e-6)
+    assert np.max(np.delete(jump, [4, 5])) < 1e-9
