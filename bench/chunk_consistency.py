@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib.util
 import json
 import platform
 import time
@@ -30,14 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-
-def _confirmation():
-    spec = importlib.util.spec_from_file_location("bench_conversion_confirmation",
-                                                  Path(__file__).with_name("conversion_confirmation.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def row_mismatch(task, R: np.ndarray) -> np.ndarray:
@@ -68,13 +59,14 @@ def main() -> None:
     from sdp_cli.data.artifacts import code_revision, load_npz
     from sdp_cli.policy import load_policy
 
-    conf = _confirmation()
-    runs = [r for folder in a.runs for r in conf.selected_runs(folder, a.prefix, a.methods.split(","))]
+    from conversion_confirmation import final_iteration, selected_runs   # bench/ is the script's sys.path[0]
+
+    runs = [r for folder in a.runs for r in selected_runs(folder, a.prefix, a.methods.split(","))]
     if not runs:
         raise SystemExit(f"no finished run (with summary.csv) in {' '.join(map(str, a.runs))} named {a.prefix}* with a method in {a.methods}")
     rows, t0 = [], time.perf_counter()
     for run in runs:
-        last, trained_on = conf.final_iteration(run)
+        last, trained_on = final_iteration(run)
         data, _ = load_npz(trained_on, kind="dataset")
         pol = load_policy(last / "policy")
         task = pol.task
@@ -92,12 +84,14 @@ def main() -> None:
 
         task.chunk_controller = keep
         cfg = RolloutConfig(n=len(xis), seed=0, t_a=t_a).validate(pol)
-        with torch.no_grad():
-            rollout_policy(pol, xis, cfg, generators=instance_generators(0, range(len(xis))))
-        task.chunk_controller = build
-        first = row_mismatch(task, chunks[0]).ravel()                     # from the training starts themselves
-        first = first[np.isfinite(first)]
-        pred = np.concatenate([row_mismatch(task, c).ravel() for c in chunks])
+        try:
+            with torch.no_grad():
+                rollout_policy(pol, xis, cfg, generators=instance_generators(0, range(len(xis))))
+        finally:
+            task.chunk_controller = build
+        per_chunk = [row_mismatch(task, c).ravel() for c in chunks]
+        first = per_chunk[0][np.isfinite(per_chunk[0])]                  # from the training starts themselves
+        pred = np.concatenate(per_chunk)
         pred = pred[np.isfinite(pred)]
         opt = row_mismatch(task, data["X"][: a.n]).ravel()
         rows.append({"run": run.name, "task": pol.task_name, "method": pol.method, "T_a": cfg.t_a,
