@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import platform
 import time
 from pathlib import Path
@@ -54,26 +53,21 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
-    from sdp_cli.algorithm.loop import migrate_loop_dict
     from sdp_cli.algorithm.rollout import RolloutConfig, instance_generators, rollout_policy
-    from sdp_cli.data.artifacts import code_revision, load_npz
-    from sdp_cli.policy import load_policy
+    from sdp_cli.data.artifacts import code_revision
 
-    from conversion_confirmation import final_iteration, selected_runs   # bench/ is the script's sys.path[0]
+    from conversion_confirmation import final_policy, selected_runs   # bench/ is the script's sys.path[0]
 
     runs = [r for folder in a.runs for r in selected_runs(folder, a.prefix, a.methods.split(","))]
     if not runs:
         raise SystemExit(f"no finished run (with summary.csv) in {' '.join(map(str, a.runs))} named {a.prefix}* with a method in {a.methods}")
     rows, t0 = [], time.perf_counter()
     for run in runs:
-        last, trained_on = final_iteration(run)
-        data, _ = load_npz(trained_on, kind="dataset")
-        pol = load_policy(last / "policy")
+        pol, data, t_a = final_policy(run)
         task = pol.task
         if task.action != "x":
             print(f"{run.name}: skipped (its actions are {task.action!r}, not whole states)")
             continue
-        t_a = migrate_loop_dict(json.loads((run / "loop_config.json").read_text()))["rollout"].get("t_a")
         xis = data["xi"][: a.n]
         chunks = []
         build = task.chunk_controller

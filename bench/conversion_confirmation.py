@@ -46,9 +46,7 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
-    from sdp_cli.algorithm.loop import migrate_loop_dict
-    from sdp_cli.data.artifacts import code_revision, load_npz
-    from sdp_cli.policy import load_policy
+    from sdp_cli.data.artifacts import code_revision
     from sdp_cli.algorithm.rollout import (RolloutConfig, evaluate_rollouts, evaluation_xis, instance_generators,
                                  rollout_policy)
     from sdp_cli.tasks.conversion import CONVERSIONS
@@ -59,11 +57,8 @@ def main() -> None:
         raise SystemExit(f"no finished run (with summary.csv) in {a.runs} named {a.prefix}* with a method in {methods}")
     rows, t0 = [], time.perf_counter()
     for run in runs:
-        last, trained_on = final_iteration(run)
-        data, _ = load_npz(trained_on, kind="dataset")
-        pol = load_policy(last / "policy")
+        pol, data, t_a = final_policy(run)
         task = pol.task
-        t_a = migrate_loop_dict(json.loads((run / "loop_config.json").read_text()))["rollout"].get("t_a")
         to = np.array([task.cost(X, U, xi) for X, U, xi in zip(data["X"], data["U"], data["xi"])])
         sets = {f"train ({len(data['xi'])})": data["xi"], f"test ({a.n_test})": evaluation_xis(task, a.n_test, 0)}
         for conv in CONVERSIONS:
@@ -142,6 +137,19 @@ def final_iteration(run: Path) -> tuple[Path, Path]:
         raise SystemExit(f"{run}: no iteration has finished training")
     buffer = last / "buffer.npz"
     return last, buffer if buffer.is_file() else last / "data.npz"
+
+
+def final_policy(run: Path):
+    """The run's final policy (:func:`final_iteration`'s), the dataset it trained on and the run's loop T_a
+    (its loop_config.json): ``(policy, dataset arrays, t_a)``."""
+    from sdp_cli.algorithm.loop import migrate_loop_dict
+    from sdp_cli.data.artifacts import load_npz
+    from sdp_cli.policy import load_policy
+
+    last, trained_on = final_iteration(run)
+    data, _ = load_npz(trained_on, kind="dataset")
+    t_a = migrate_loop_dict(json.loads((run / "loop_config.json").read_text()))["rollout"].get("t_a")
+    return load_policy(last / "policy"), data, t_a
 
 
 def per_run_table(text: str) -> pd.DataFrame:
